@@ -1,0 +1,130 @@
+"""Data model: plain dataclasses over numpy arrays, shared by every part of the pipeline."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fastmac_exp.errors import InputError
+
+
+def _as_points(name: str, a: Any) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name} must have shape (N, 3), got {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+@dataclass
+class Correspondences:
+    """Putative matches c_i = (src_i, tgt_i); a pose T is right when tgt ~ R src + t."""
+
+    src: np.ndarray
+    tgt: np.ndarray
+    labels: np.ndarray | None = None
+    scores: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.src = _as_points("Correspondences.src", self.src)
+        self.tgt = _as_points("Correspondences.tgt", self.tgt)
+        if self.src.shape != self.tgt.shape:
+            raise InputError(
+                f"src and tgt must have the same number of rows, got {len(self.src)} and {len(self.tgt)}"
+            )
+        if self.labels is not None:
+            self.labels = np.asarray(self.labels).astype(bool).reshape(-1)
+            if len(self.labels) != len(self.src):
+                raise InputError(f"labels has {len(self.labels)} rows, expected {len(self.src)}")
+        if self.scores is not None:
+            self.scores = np.asarray(self.scores, dtype=np.float64).reshape(-1)
+            if len(self.scores) != len(self.src):
+                raise InputError(f"scores has {len(self.scores)} rows, expected {len(self.src)}")
+
+    def __len__(self) -> int:
+        return len(self.src)
+
+    def subset(self, idx: np.ndarray) -> Correspondences:
+        """The correspondences at `idx`, in that order."""
+        idx = np.asarray(idx, dtype=np.int64)
+        return Correspondences(
+            src=self.src[idx],
+            tgt=self.tgt[idx],
+            labels=None if self.labels is None else self.labels[idx],
+            scores=None if self.scores is None else self.scores[idx],
+        )
+
+    def validate(self, where: str = "correspondences") -> None:
+        """Raise InputError naming the first offending row if any coordinate is NaN, inf or absurd."""
+        for name, arr in (("source", self.src), ("target", self.tgt)):
+            bad = ~np.isfinite(arr).all(axis=1)
+            if bad.any():
+                row = int(np.flatnonzero(bad)[0])
+                raise InputError(f"{where}: {name} point in row {row} is not finite: {arr[row].tolist()}")
+            huge = (np.abs(arr) > 1e6).any(axis=1)
+            if huge.any():
+                row = int(np.flatnonzero(huge)[0])
+                raise InputError(
+                    f"{where}: {name} point in row {row} has a coordinate beyond 1e6 m "
+                    f"({arr[row].tolist()}); are the units right?"
+                )
+
+    @property
+    def inlier_ratio(self) -> float:
+        if self.labels is None or len(self.labels) == 0:
+            return float("nan")
+        return float(np.mean(self.labels))
+
+
+@dataclass
+class Pair:
+    """One registration problem: two clouds and/or correspondences, the GT and the dataset's rules.
+
+    `gt` maps source into target. Thresholds are the dataset family's (spec section 6).
+    """
+
+    name: str
+    family: str = "3dmatch"  # whose rules apply: "3dmatch", "3dlomatch" or "kitti" (spec sections 2.2, 6)
+    gt: np.ndarray | None = None
+    src_cloud: np.ndarray | None = None
+    tgt_cloud: np.ndarray | None = None
+    correspondences: Correspondences | None = None
+    voxel_size: float = 0.05
+    inlier_threshold: float = 0.1
+    re_thresh_deg: float = 15.0
+    te_thresh_m: float = 0.3
+    resolution: float = 0.006
+    scene: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def label(self, corr: Correspondences) -> Correspondences:
+        """Attach GT inlier labels (error under GT below the inlier threshold) when a GT is known."""
+        if self.gt is None:
+            return corr
+        err = np.linalg.norm(corr.src @ self.gt[:3, :3].T + self.gt[:3, 3] - corr.tgt, axis=1)
+        corr.labels = err < self.inlier_threshold
+        return corr
+
+
+@dataclass
+class RegistrationResult:
+    """What MAC returns for one set of correspondences.
+
+    `pose` is the final (refined) estimate; `pose_unrefined` the best hypothesis before refinement.
+    `kept` indexes the correspondences given to `register` (after sampling); `clique` indexes `kept`'s
+    subset that formed the winning hypothesis, expressed as indices into the input correspondences.
+    """
+
+    pose: np.ndarray
+    pose_unrefined: np.ndarray
+    kept: np.ndarray
+    clique: np.ndarray
+    score: float = 0.0
+    n_cliques: int = 0
+    n_selected: int = 0
+    n_edges: int = 0
+    reduced: bool = False
+    cap_hit: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+    scores: np.ndarray | None = None  # per-node sampling scores over the input, if a sampler ran
