@@ -1,0 +1,123 @@
+"""Per-dataset and per-descriptor parameters of the compatibility graph and of MAC (spec sections 2.2, 3, 5).
+
+Every value here is the reference code's default; `mac_params_for` resolves them for one pair, and
+explicit overrides (the `graph:`/`mac:` config keys) win over the table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from fastmac_exp.errors import InputError
+
+GAUSSIAN = "gaussian"
+QUADRATIC = "quadratic"
+FAMILIES = ("3dmatch", "3dlomatch", "kitti")
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """First-order compatibility: d_ij = | |p_i - p_j| - |q_i - q_j| |, s = kernel(d), edge iff s >= threshold.
+
+    gaussian: s = exp(-d^2 / (2 alpha^2)); quadratic: s = 1 - d^2 / tau^2. Surviving weights keep their value.
+    """
+
+    kernel: str = GAUSSIAN
+    alpha: float = 0.06
+    tau: float = 0.1
+    threshold: float = 0.995
+
+    def __post_init__(self) -> None:
+        if self.kernel not in (GAUSSIAN, QUADRATIC):
+            raise InputError(f"graph.kernel must be '{GAUSSIAN}' or '{QUADRATIC}', got {self.kernel!r}")
+        if not 0.0 < self.threshold <= 1.0:
+            raise InputError(f"graph.threshold must be in (0, 1], got {self.threshold}")
+        if self.alpha <= 0 or self.tau <= 0:
+            raise InputError(f"graph.alpha and graph.tau must be positive, got {self.alpha}, {self.tau}")
+
+    @property
+    def max_distance(self) -> float:
+        """The largest inconsistency d that still makes an edge."""
+        if self.kernel == GAUSSIAN:
+            import math
+
+            return self.alpha * math.sqrt(-2.0 * math.log(self.threshold)) if self.threshold < 1 else 0.0
+        return self.tau * (1.0 - self.threshold) ** 0.5
+
+
+@dataclass(frozen=True)
+class MacParams:
+    """Everything MAC needs besides the correspondences."""
+
+    graph: GraphParams = field(default_factory=GraphParams)
+    inlier_threshold: float = 0.1  # tau of the hypothesis score (MAE) and refinement
+    min_clique_size: int = 3
+    refine_iters: int = 20
+    reduction: bool = True  # the dense-graph reduction of spec section 2.5
+    max_cliques: int = 0  # safety cap, 0 = off; when hit, the result says so
+    time_limit_s: float = 0.0  # safety cap on the clique search, 0 = off
+
+    def __post_init__(self) -> None:
+        if self.inlier_threshold <= 0:
+            raise InputError(f"inlier_threshold must be positive, got {self.inlier_threshold}")
+        if self.min_clique_size < 3:
+            raise InputError(f"min_clique_size must be at least 3 (a pose needs 3 points), got {self.min_clique_size}")
+
+
+# (family, descriptor) -> (kernel, threshold); unknown descriptors fall back to the family default.
+_TABLE: dict[tuple[str, str], tuple[str, float]] = {
+    ("3dmatch", "fcgf"): (GAUSSIAN, 0.999),
+    ("3dmatch", "fpfh"): (GAUSSIAN, 0.995),
+    ("3dmatch", "spinnet"): (GAUSSIAN, 0.85),
+    ("3dmatch", "d3feat"): (GAUSSIAN, 0.85),
+    ("3dmatch", "predator"): (QUADRATIC, 0.999),
+    ("3dlomatch", "fcgf"): (GAUSSIAN, 0.99),
+    ("3dlomatch", "fpfh"): (GAUSSIAN, 0.99),
+    ("3dlomatch", "spinnet"): (GAUSSIAN, 0.85),
+    ("3dlomatch", "d3feat"): (GAUSSIAN, 0.85),
+    ("3dlomatch", "predator"): (QUADRATIC, 0.999),
+    ("kitti", "fpfh"): (QUADRATIC, 0.9),
+}
+_FAMILY_DEFAULT = {"3dmatch": (GAUSSIAN, 0.995), "3dlomatch": (GAUSSIAN, 0.99), "kitti": (QUADRATIC, 0.999)}
+INLIER_THRESHOLD = {"3dmatch": 0.1, "3dlomatch": 0.1, "kitti": 0.6}
+SUCCESS_THRESHOLDS = {"3dmatch": (15.0, 0.30), "3dlomatch": (15.0, 0.30), "kitti": (5.0, 0.60)}
+MIN_CLIQUE_SIZE = {"3dmatch": 3, "3dlomatch": 3, "kitti": 3}  # 4 for KITTI in igraph>=0.10 builds (spec 9.5)
+
+
+def check_family(family: str) -> str:
+    if family not in FAMILIES:
+        raise InputError(f"unknown dataset family {family!r}; expected one of {', '.join(FAMILIES)}")
+    return family
+
+
+def graph_params_for(family: str, descriptor: str, resolution: float = 0.006) -> GraphParams:
+    """The reference graph parameters (spec table 2.2) for a dataset family and a descriptor."""
+    check_family(family)
+    kernel, thr = _TABLE.get((family, descriptor), _FAMILY_DEFAULT[family])
+    tau = INLIER_THRESHOLD[family]
+    return GraphParams(kernel=kernel, alpha=10.0 * resolution, tau=tau, threshold=thr)
+
+
+def mac_params_for(
+    family: str,
+    descriptor: str,
+    resolution: float = 0.006,
+    graph_overrides: dict[str, Any] | None = None,
+    mac_overrides: dict[str, Any] | None = None,
+) -> MacParams:
+    """Resolve MAC's parameters for one pair; `None` values in the overrides mean 'use the table'."""
+    graph = graph_params_for(family, descriptor, resolution)
+    g = {k: v for k, v in (graph_overrides or {}).items() if v is not None}
+    unknown = set(g) - {"kernel", "alpha", "tau", "threshold"}
+    if unknown:
+        raise InputError(f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold")
+    graph = replace(graph, **g)
+    base = MacParams(
+        graph=graph, inlier_threshold=INLIER_THRESHOLD[family], min_clique_size=MIN_CLIQUE_SIZE[family]
+    )
+    m = {k: v for k, v in (mac_overrides or {}).items() if v is not None}
+    known = {"inlier_threshold", "min_clique_size", "refine_iters", "reduction", "max_cliques", "time_limit_s"}
+    if set(m) - known:
+        raise InputError(f"unknown mac parameter(s) {sorted(set(m) - known)}; known: {sorted(known)}")
+    return replace(base, **m)
