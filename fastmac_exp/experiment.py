@@ -1,0 +1,258 @@
+"""The experiment loop: every pair of a dataset through the pipeline, with fault isolation, resume,
+parallel workers and trackers. Usable without Hydra: pass a DictConfig or a plain dict."""
+
+from __future__ import annotations
+
+import json
+import logging
+import traceback
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from fastmac_exp.errors import InputError
+from fastmac_exp.metrics import summarize
+from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
+from fastmac_exp.results import ResultsLog
+
+log = logging.getLogger(__name__)
+
+
+def _choice(cfg: DictConfig, group: str, default: str) -> str:
+    """The config group option that was chosen (e.g. 'highpass'), read from the config's `name` key."""
+    node = cfg.get(group)
+    name = node.get("name") if isinstance(node, DictConfig) else None
+    return str(name) if name is not None else default
+
+
+class Components:
+    """The instantiated parts of a run (built once per process)."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        ds_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
+        self.limit = ds_cfg.pop("limit", None)
+        ds_cfg.pop("name", None)
+        self.dataset = instantiate(ds_cfg)
+        desc_cfg = _strip(cfg.descriptor)
+        graph_key = desc_cfg.pop("graph_key", None)
+        self.descriptor = instantiate(desc_cfg)
+        if graph_key:
+            self.descriptor.graph_key = graph_key
+        self.sampler = instantiate(_strip(cfg.sampler))
+        self.backend = instantiate(_strip(cfg.backend))
+        self.cfg = cfg
+        self.labels = {
+            "dataset": _choice(cfg, "dataset", getattr(self.dataset, "name", "dataset")),
+            "descriptor": _choice(cfg, "descriptor", getattr(self.descriptor, "name", "descriptor")),
+            "sampler": getattr(self.sampler, "name", _choice(cfg, "sampler", "sampler")),
+            "backend": getattr(self.backend, "name", _choice(cfg, "backend", "backend")),
+        }
+
+    def names(self) -> list[str]:
+        names = list(self.dataset.names())
+        if self.limit is not None:
+            if int(self.limit) < 0:
+                raise InputError(f"dataset.limit must be >= 0, got {self.limit}")
+            names = names[: int(self.limit)]
+        return names
+
+
+def _strip(node: DictConfig) -> dict[str, Any]:
+    d = OmegaConf.to_container(node, resolve=True)
+    d.pop("name", None)
+    return d
+
+
+def pair_rng(seed: int, index: int) -> np.random.Generator:
+    """One independent stream per pair, so results do not depend on order or on the number of workers."""
+    return np.random.default_rng([int(seed), int(index)])
+
+
+def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
+    """Run one pair; any exception becomes a failed row with the error message (fault isolation)."""
+    cfg = comp.cfg
+    row: dict[str, Any] = {
+        "index": index,
+        "pair": name,
+        **comp.labels,
+        "ratio": float(cfg.ratio),
+        "seed": int(cfg.seed),
+        "protocol": str(cfg.protocol),
+        "error": "",
+    }
+    try:
+        pair = comp.dataset.load(index)
+        row.update(scene=pair.scene, family=pair.family)
+        outcome = run_pair(
+            pair,
+            comp.descriptor,
+            comp.sampler,
+            comp.backend,
+            float(cfg.ratio),
+            pair_rng(cfg.seed, index),
+            protocol=str(cfg.protocol),
+            graph_overrides=OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None,
+            mac_overrides=OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None,
+            row=row,
+        )
+        return outcome
+    except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run
+        if cfg.get("fail_fast", False):
+            raise
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        row["success"] = False
+        log.debug("pair %s failed:\n%s", name, traceback.format_exc())
+        return PairOutcome(row=row)
+
+
+_WORKER: Components | None = None
+
+
+def _init_worker(cfg_yaml: str) -> None:
+    global _WORKER
+    _WORKER = Components(OmegaConf.create(cfg_yaml))
+
+
+def _work(args: tuple[int, str]) -> PairOutcome:
+    assert _WORKER is not None
+    out = process_pair(_WORKER, *args)
+    out.pair = None  # clouds are large; trackers in the parent get the correspondences and the result
+    return out
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, unit="pair", dynamic_ncols=True)
+
+
+def run_experiment(cfg: DictConfig | dict[str, Any], run_dir: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Run every (remaining) pair, write results.{jsonl,csv,parquet}, summary.json and config.yaml."""
+    cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
+    if cfg.protocol not in PROTOCOLS:
+        raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.protocol!r}")
+    run_dir = Path(cfg.resume) if cfg.get("resume") else Path(run_dir)
+    if cfg.get("resume") and not run_dir.is_dir():
+        raise InputError(f"resume={cfg.resume}: no such run directory")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    _save_config(cfg, run_dir)
+
+    comp = Components(cfg)
+    names = comp.names()
+    results = ResultsLog(run_dir)
+    done = results.done()
+    todo = [(i, n) for i, n in enumerate(names) if n not in done]
+    if done:
+        log.info("resuming %s: %d of %d pairs already done", run_dir, len(names) - len(todo), len(names))
+
+    trackers = _make_trackers(cfg)
+    plain_cfg = OmegaConf.to_container(cfg, resolve=True)
+    for t in trackers:
+        t.start(plain_cfg, run_dir, names)
+
+    workers = int(cfg.get("workers", 1) or 1)
+    bar = _progress(len(todo), bool(cfg.get("progress", True)))
+    n_ok = n_done = 0
+    t_sum = 0.0
+    interrupted = False
+
+    def consume(out: PairOutcome) -> None:
+        nonlocal n_ok, n_done, t_sum
+        results.append(out.row)
+        for t in trackers:
+            try:
+                t.log_pair(out)
+            except Exception as exc:  # noqa: BLE001 - a tracker problem must not lose results
+                log.warning("tracker %s failed on pair %s: %s", t.name, out.row.get("pair"), exc)
+        n_done += 1
+        n_ok += bool(out.row.get("success"))
+        t_sum += float(out.row.get("t_total_ms") or 0.0)
+        bar.set_postfix(RR=f"{n_ok / n_done:.2f}", ms_per_pair=f"{t_sum / n_done:.0f}")
+        bar.update(1)
+
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            for i, n in todo:
+                consume(process_pair(comp, i, n))
+        else:
+            cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
+            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,)) as pool:
+                for out in pool.map(_work, todo):
+                    consume(out)
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted: %d pairs are saved in %s; rerun with resume=%s", n_done, run_dir, run_dir)
+    finally:
+        bar.close()
+        table = results.write_tables()
+        summary = summarize(table)
+        summary.update(
+            run_dir=str(run_dir),
+            dataset=comp.labels["dataset"],
+            descriptor=comp.labels["descriptor"],
+            sampler=comp.labels["sampler"],
+            backend=comp.labels["backend"],
+            ratio=float(cfg.ratio),
+            seed=int(cfg.seed),
+            protocol=str(cfg.protocol),
+            complete=len(table) == len(names) and not interrupted,
+        )
+        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        for t in trackers:
+            try:
+                t.finish(table, summary)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("tracker %s failed to finish: %s", t.name, exc)
+    if interrupted:
+        raise KeyboardInterrupt
+    return table, summary
+
+
+def _save_config(cfg: DictConfig, run_dir: Path) -> None:
+    path = run_dir / "config.yaml"
+    if cfg.get("resume") and path.exists():
+        old = OmegaConf.load(path)
+        keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "seed", "protocol", "graph", "mac")
+        changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
+        if changed:
+            log.warning("resume: config differs from the saved run in %s; continuing with the new one", changed)
+        path = run_dir / "config.resumed.yaml"
+    OmegaConf.save(cfg, path, resolve=False)
+
+
+def _make_trackers(cfg: DictConfig) -> list:
+    node = cfg.get("tracker")
+    if not node:
+        return []
+    trackers = []
+    for key, sub in node.items():
+        if not isinstance(sub, DictConfig) or "_target_" not in sub or not sub.get("enabled", True):
+            continue
+        kwargs = OmegaConf.to_container(sub, resolve=True)
+        kwargs.pop("enabled", None)
+        try:
+            trackers.append(instantiate(kwargs))
+        except Exception as exc:  # noqa: BLE001 - e.g. an optional package missing
+            log.warning("tracker %s disabled: %s", key, exc)
+    return trackers
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """A short human-readable summary table."""
+    stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
+    lines = [
+        f"dataset={summary.get('dataset')} descriptor={summary.get('descriptor')} sampler={summary.get('sampler')} "
+        f"ratio={summary.get('ratio')} backend={summary.get('backend')} protocol={summary.get('protocol')}",
+        f"pairs: {summary.get('pairs')}  registered: {summary.get('registered', 0)}  failed: {summary.get('failed', 0)}",
+        f"RR: {100 * summary.get('RR', float('nan')):.1f}%   RE: {summary.get('RE_deg', float('nan')):.2f} deg   "
+        f"TE: {summary.get('TE_cm', float('nan')):.2f} cm   "
+        f"inlier ratio in/kept: {summary.get('inlier_ratio_in', float('nan')):.3f}/"
+        f"{summary.get('inlier_ratio_kept', float('nan')):.3f}",
+        "median ms: " + "  ".join(f"{s} {summary.get(f'median_{s}_ms', float('nan')):.1f}" for s in stages),
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,54 @@
+"""Registration metrics (spec section 6): RE in degrees, TE in centimetres, success, recall."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from fastmac_exp.transforms import rotation_error_deg, translation_error_m
+
+
+@dataclass
+class PoseErrors:
+    re_deg: float
+    te_cm: float
+    success: bool
+
+
+def pose_errors(pose: np.ndarray, gt: np.ndarray, re_max_deg: float, te_max_m: float) -> PoseErrors:
+    """RE, TE and success by the dataset's thresholds (0 <= RE <= RE_max and 0 <= TE <= TE_max)."""
+    re = rotation_error_deg(pose[:3, :3], gt[:3, :3])
+    te = translation_error_m(pose[:3, 3], gt[:3, 3])
+    return PoseErrors(re_deg=re, te_cm=te * 100.0, success=bool(re <= re_max_deg and te <= te_max_m))
+
+
+STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
+
+
+def summarize(table: pd.DataFrame) -> dict:
+    """RR over all pairs (failed pairs count as not registered), RE/TE means over successful pairs,
+    median time per stage (ms)."""
+    n = len(table)
+    if n == 0:
+        return {"pairs": 0, "failed": 0, "RR": float("nan")}
+    ok = table["success"].fillna(False).astype(bool)
+    failed = int(table["error"].fillna("").astype(str).ne("").sum()) if "error" in table else 0
+    out = {
+        "pairs": n,
+        "failed": failed,
+        "registered": int(ok.sum()),
+        "RR": float(ok.mean()),
+        "RE_deg": float(table.loc[ok, "re_deg"].mean()) if ok.any() else float("nan"),
+        "TE_cm": float(table.loc[ok, "te_cm"].mean()) if ok.any() else float("nan"),
+        "inlier_ratio_in": float(table["inlier_ratio_in"].mean()) if "inlier_ratio_in" in table else float("nan"),
+        "inlier_ratio_kept": float(table["inlier_ratio_kept"].mean())
+        if "inlier_ratio_kept" in table
+        else float("nan"),
+    }
+    for stage in STAGES:
+        col = f"t_{stage}_ms"
+        if col in table:
+            out[f"median_{stage}_ms"] = float(table[col].median())
+    return out
