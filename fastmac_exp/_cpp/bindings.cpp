@@ -1,0 +1,227 @@
+// nanobind module fastmac_exp._mac_core: numpy in, numpy out; the GIL is released while computing.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+
+#include <cstring>
+
+#include "mac_core.hpp"
+#include "omp_compat.hpp"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace {
+
+using Points = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Indices = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using Weights = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+
+// Moves a std::vector into a numpy array that owns it.
+template <class T>
+nb::object to_numpy(std::vector<T> &&v, std::initializer_list<size_t> shape) {
+    if (v.empty()) v.reserve(1);  // non-null data pointer
+    auto *heap = new std::vector<T>(std::move(v));
+    nb::capsule owner(heap, [](void *p) noexcept { delete static_cast<std::vector<T> *>(p); });
+    return nb::ndarray<nb::numpy, T>(heap->data(), shape, owner).cast();
+}
+template <class T>
+nb::object to_numpy(std::vector<T> &&v) {
+    const size_t n = v.size();
+    return to_numpy(std::move(v), {n});
+}
+
+nb::object pose_to_numpy(const fastmac::Pose &T) {
+    std::vector<double> m(16, 0.0);
+    for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) m[4 * r + c] = T.R[3 * r + c];
+        m[4 * r + 3] = T.t[r];
+    }
+    m[15] = 1.0;
+    return to_numpy(std::move(m), {4, 4});
+}
+
+int64_t check_pair(const Points &src, const Points &tgt) {
+    if (src.shape(1) != 3 || tgt.shape(1) != 3)
+        throw std::invalid_argument("src and tgt must have shape (N, 3)");
+    if (src.shape(0) != tgt.shape(0))
+        throw std::invalid_argument("src and tgt must have the same number of rows, got " +
+                                    std::to_string(src.shape(0)) + " and " + std::to_string(tgt.shape(0)));
+    return (int64_t)src.shape(0);
+}
+
+fastmac::GraphParams graph_params(const std::string &kernel, double alpha, double tau, double threshold) {
+    fastmac::GraphParams gp;
+    gp.kernel = fastmac::parse_kernel(kernel);
+    gp.alpha = alpha;
+    gp.tau = tau;
+    gp.threshold = threshold;
+    fastmac::check_params(gp);
+    return gp;
+}
+
+nb::dict graph_edges(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+                     double threshold, int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    const auto gp = graph_params(kernel, alpha, tau, threshold);
+    std::vector<int64_t> ei, ej;
+    std::vector<double> ew, eg;
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
+        std::vector<double> G = fastmac::second_order(W, num_threads);
+        const int64_t m = W.n_edges();
+        ei.reserve(m);
+        ej.reserve(m);
+        ew.reserve(m);
+        eg.reserve(m);
+        for (int64_t i = 0; i < n; ++i)
+            for (int64_t p = W.upper[i]; p < W.ptr[i + 1]; ++p) {
+                ei.push_back(i);
+                ej.push_back(W.col[p]);
+                ew.push_back(W.w[p]);
+                eg.push_back(G[p]);
+            }
+    }
+    nb::dict d;
+    d["i"] = to_numpy(std::move(ei));
+    d["j"] = to_numpy(std::move(ej));
+    d["w"] = to_numpy(std::move(ew));
+    d["g"] = to_numpy(std::move(eg));
+    return d;
+}
+
+nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+                       double threshold, bool self_loops, int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    const auto gp = graph_params(kernel, alpha, tau, threshold);
+    fastmac::Signals s;
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
+        std::vector<double> G = fastmac::second_order(W, num_threads);
+        s = fastmac::graph_signals(W, G, self_loops, num_threads);
+    }
+    nb::dict d;
+    d["degree"] = to_numpy(std::move(s.degree));
+    d["highpass"] = to_numpy(std::move(s.highpass));
+    d["lowpass"] = to_numpy(std::move(s.lowpass));
+    d["n_edges"] = s.n_edges;
+    return d;
+}
+
+nb::tuple maximal_cliques(int64_t n, const Indices &i, const Indices &j, int min_size, int64_t max_cliques,
+                          double time_limit_s, int num_threads) {
+    if (i.shape(0) != j.shape(0)) throw std::invalid_argument("i and j must have the same length");
+    fastmac::CliqueList cl;
+    std::string cap_hit;
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::AdjGraph g = fastmac::adj_from_edges(n, i.data(), j.data(), (int64_t)i.shape(0));
+        fastmac::CliqueCaps caps;
+        caps.max_cliques = max_cliques;
+        caps.time_limit_s = time_limit_s;
+        cl = fastmac::maximal_cliques(g, min_size, caps, cap_hit, num_threads);
+    }
+    nb::list out;
+    for (size_t c = 0; c < cl.size(); ++c) {
+        std::vector<int64_t> m(cl.begin(c), cl.begin(c) + cl.len(c));
+        out.append(to_numpy(std::move(m)));
+    }
+    return nb::make_tuple(out, cap_hit);
+}
+
+nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+             double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
+             int64_t max_cliques, double time_limit_s, int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    fastmac::MacParams p;
+    p.graph = graph_params(kernel, alpha, tau, threshold);
+    p.inlier_threshold = inlier_threshold;
+    p.min_clique_size = min_clique_size;
+    p.refine_iters = refine_iters;
+    p.reduction = reduction;
+    p.max_cliques = max_cliques;
+    p.time_limit_s = time_limit_s;
+    if (min_clique_size < 3) throw std::invalid_argument("min_clique_size must be at least 3");
+    fastmac::MacResult r;
+    {
+        nb::gil_scoped_release nogil;
+        r = fastmac::mac(src.data(), tgt.data(), n, p, num_threads);
+    }
+    nb::dict d;
+    d["pose"] = pose_to_numpy(r.pose);
+    d["pose_unrefined"] = pose_to_numpy(r.pose_unrefined);
+    d["clique"] = to_numpy(std::move(r.clique));
+    d["score"] = r.score;
+    d["n_cliques"] = r.n_cliques;
+    d["n_selected"] = r.n_selected;
+    d["n_edges"] = r.n_edges;
+    d["n_sog_edges"] = r.n_sog_edges;
+    d["reduced"] = r.reduced;
+    d["cap_hit"] = r.cap_hit;
+    nb::dict t;
+    t["graph"] = r.t_graph;
+    t["cliques"] = r.t_cliques;
+    t["selection"] = r.t_selection;
+    t["pose"] = r.t_pose;
+    d["timings"] = t;
+    return d;
+}
+
+nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
+    const int64_t n = check_pair(src, tgt);
+    std::vector<double> w;
+    if (!weights.is_none()) {
+        auto wa = nb::cast<Weights>(weights);
+        if ((int64_t)wa.shape(0) != n) throw std::invalid_argument("weights must have one entry per row");
+        w.assign(wa.data(), wa.data() + n);
+    }
+    const fastmac::Pose T = fastmac::kabsch(src.data(), tgt.data(), nullptr, n, w.empty() ? nullptr : w.data());
+    return pose_to_numpy(T);
+}
+
+}  // namespace
+
+NB_MODULE(_mac_core, m) {
+    m.doc() = "C++ core of fastmac_exp: compatibility graphs, maximal cliques and MAC (see fastmac_exp.backends.cpp)";
+
+    nb::register_exception_translator([](const std::exception_ptr &p, void *) {
+        try {
+            std::rethrow_exception(p);
+        } catch (const fastmac::RegistrationFailed &e) {
+            PyObject *cls = PyExc_RuntimeError;
+            nb::object holder;
+            try {
+                holder = nb::module_::import_("fastmac_exp.errors").attr("RegistrationFailed");
+                cls = holder.ptr();
+            } catch (...) {
+                PyErr_Clear();
+            }
+            PyErr_SetString(cls, e.what());
+        }
+    });
+
+    m.def("graph_edges", &graph_edges, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
+          "num_threads"_a = 0,
+          "Upper-triangle edges (i < j) of W with their weights w and second-order weights g = G_ij.");
+    m.def("graph_signals", &graph_signals, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
+          "self_loops"_a = true, "num_threads"_a = 0,
+          "Generalized degree, signed high-pass and low-pass responses of the SOG (spec 7.2-7.3).");
+    m.def("maximal_cliques", &maximal_cliques, "n"_a, "i"_a, "j"_a, "min_size"_a = 3, "max_cliques"_a = 0,
+          "time_limit_s"_a = 0.0, "num_threads"_a = 0,
+          "Every maximal clique of size >= min_size in canonical order, and the cap that stopped the search "
+          "('' when none).");
+    m.def("mac", &mac, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a, "inlier_threshold"_a,
+          "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "max_cliques"_a = 0,
+          "time_limit_s"_a = 0.0, "num_threads"_a = 0, "MAC end to end (spec 2-5).");
+    m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
+          "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
+    m.def("openmp_threads", []() { return fastmac::resolve_threads(0); },
+          "Threads OpenMP uses by default (1 when built without OpenMP).");
+#ifdef _OPENMP
+    m.attr("has_openmp") = true;
+#else
+    m.attr("has_openmp") = false;
+#endif
+}

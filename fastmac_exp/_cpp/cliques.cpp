@@ -1,0 +1,327 @@
+// Maximal cliques: Bron-Kerbosch with Tomita pivoting, run from each vertex in degeneracy order
+// (Eppstein, Loeffler and Strash 2010). Each root's subproblem (later neighbours P, earlier
+// neighbours X) is solved on local bitsets, so set operations are word-parallel; roots are independent
+// and run in parallel. The result is put in canonical order (members ascending, list lexicographic).
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstring>
+#include <numeric>
+
+#include "mac_core.hpp"
+#include "omp_compat.hpp"
+
+namespace fastmac {
+
+AdjGraph adj_from_edges(int64_t n, const int64_t *ei, const int64_t *ej, int64_t m) {
+    if (n < 0) throw std::invalid_argument("n must be non-negative");
+    if (n > INT32_MAX) throw std::invalid_argument("n must be below 2^31");
+    AdjGraph g;
+    g.n = n;
+    g.ptr.assign(n + 1, 0);
+    for (int64_t e = 0; e < m; ++e) {
+        const int64_t a = ei[e], b = ej[e];
+        if (a < 0 || a >= n || b < 0 || b >= n)
+            throw std::invalid_argument("edge (" + std::to_string(a) + ", " + std::to_string(b) +
+                                        ") is out of range for n = " + std::to_string(n));
+        if (a == b) continue;
+        ++g.ptr[a + 1];
+        ++g.ptr[b + 1];
+    }
+    for (int64_t v = 0; v < n; ++v) g.ptr[v + 1] += g.ptr[v];
+    g.col.resize(g.ptr[n]);
+    std::vector<int64_t> cur(g.ptr.begin(), g.ptr.end() - 1);
+    for (int64_t e = 0; e < m; ++e) {
+        const int64_t a = ei[e], b = ej[e];
+        if (a == b) continue;
+        g.col[cur[a]++] = (int32_t)b;
+        g.col[cur[b]++] = (int32_t)a;
+    }
+    // Sort and deduplicate each row, then compact.
+    int64_t out = 0;
+    std::vector<int64_t> newptr(n + 1, 0);
+    for (int64_t v = 0; v < n; ++v) {
+        auto first = g.col.begin() + g.ptr[v], last = g.col.begin() + g.ptr[v + 1];
+        std::sort(first, last);
+        auto uend = std::unique(first, last);
+        const int64_t len = uend - first;
+        std::memmove(g.col.data() + out, g.col.data() + g.ptr[v], (size_t)len * sizeof(int32_t));
+        out += len;
+        newptr[v + 1] = out;
+    }
+    g.col.resize(out);
+    g.ptr.swap(newptr);
+    return g;
+}
+
+namespace {
+
+// Degeneracy (smallest-last) order by the bucket algorithm of Batagelj and Zaversnik.
+std::vector<int32_t> degeneracy_order(const AdjGraph &g) {
+    const int64_t n = g.n;
+    std::vector<int32_t> deg(n), vert(n), pos(n);
+    int32_t md = 0;
+    for (int64_t v = 0; v < n; ++v) {
+        deg[v] = (int32_t)(g.ptr[v + 1] - g.ptr[v]);
+        md = std::max(md, deg[v]);
+    }
+    std::vector<int64_t> bin(md + 2, 0);
+    for (int64_t v = 0; v < n; ++v) ++bin[deg[v] + 1];
+    for (int32_t d = 0; d <= md; ++d) bin[d + 1] += bin[d];
+    {
+        std::vector<int64_t> next(bin.begin(), bin.end() - 1);
+        for (int64_t v = 0; v < n; ++v) {
+            pos[v] = (int32_t)next[deg[v]]++;
+            vert[pos[v]] = (int32_t)v;
+        }
+    }
+    // bin[d] = start of the degree-d bucket.
+    for (int64_t i = 0; i < n; ++i) {
+        const int32_t v = vert[i];
+        for (int64_t p = g.ptr[v]; p < g.ptr[v + 1]; ++p) {
+            const int32_t u = g.col[p];
+            if (deg[u] > deg[v]) {
+                const int32_t du = deg[u];
+                const int64_t pu = pos[u], pw = bin[du];
+                const int32_t w = vert[pw];
+                if (u != w) {
+                    vert[pu] = w;
+                    pos[w] = (int32_t)pu;
+                    vert[pw] = u;
+                    pos[u] = (int32_t)pw;
+                }
+                ++bin[du];
+                --deg[u];
+            }
+        }
+    }
+    return vert;
+}
+
+inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
+
+struct Shared {
+    std::atomic<bool> stop{false};
+    std::atomic<int64_t> found{0};
+    std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit
+    int64_t max_cliques = 0;
+    bool timed = false;
+    std::chrono::steady_clock::time_point deadline;
+};
+
+class Worker {
+   public:
+    Worker(const AdjGraph &g, int min_size, Shared &sh) : g_(g), min_size_(min_size), sh_(sh), loc_(g.n, -1) {}
+
+    CliqueList out;
+
+    void run_root(int32_t v, const std::vector<int32_t> &rank) {
+        const int32_t rv = rank[v];
+        L_.clear();
+        for (int64_t p = g_.ptr[v]; p < g_.ptr[v + 1]; ++p)
+            if (rank[g_.col[p]] > rv) L_.push_back(g_.col[p]);
+        const int np = (int)L_.size();
+        if (np + 1 < min_size_) return;
+        for (int64_t p = g_.ptr[v]; p < g_.ptr[v + 1]; ++p)
+            if (rank[g_.col[p]] < rv) L_.push_back(g_.col[p]);
+        const int nl = (int)L_.size();
+        W_ = (nl + 63) / 64;
+        Wp_ = (np + 63) / 64;
+        for (int k = 0; k < nl; ++k) loc_[L_[k]] = k;
+        adj_.assign((size_t)nl * W_, 0);
+        for (int k = 0; k < nl; ++k) {
+            uint64_t *row = adj_.data() + (size_t)k * W_;
+            const int32_t u = L_[k];
+            for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
+                const int32_t x = loc_[g_.col[p]];
+                if (x >= 0) row[x >> 6] |= uint64_t(1) << (x & 63);
+            }
+        }
+        for (int k = 0; k < nl; ++k) loc_[L_[k]] = -1;
+
+        root_ = v;
+        R_.clear();
+        uint64_t *P = level(0, 0), *X = level(0, 1);
+        std::fill(P, P + W_, 0);
+        std::fill(X, X + W_, 0);
+        for (int k = 0; k < np; ++k) P[k >> 6] |= uint64_t(1) << (k & 63);
+        for (int k = np; k < nl; ++k) X[k >> 6] |= uint64_t(1) << (k & 63);
+        expand(0);
+    }
+
+   private:
+    const AdjGraph &g_;
+    const int min_size_;
+    Shared &sh_;
+    std::vector<int32_t> loc_, L_, R_;
+    std::vector<uint64_t> adj_;
+    std::vector<std::vector<uint64_t>> levels_;  // per depth: P | X | candidates
+    int W_ = 0, Wp_ = 0;
+    int32_t root_ = 0;
+    uint64_t calls_ = 0;
+    std::vector<int32_t> tmp_;
+
+    uint64_t *level(int depth, int which) {
+        if ((int)levels_.size() <= depth) levels_.resize(depth + 1);
+        auto &buf = levels_[depth];
+        if (buf.size() < (size_t)3 * W_) buf.resize((size_t)3 * W_);
+        return buf.data() + (size_t)which * W_;
+    }
+    const uint64_t *row(int u) const { return adj_.data() + (size_t)u * W_; }
+
+    bool should_stop() {
+        if (sh_.stop.load(std::memory_order_relaxed)) return true;
+        if (sh_.timed && (++calls_ & 255) == 0 && std::chrono::steady_clock::now() > sh_.deadline) {
+            int expected = 0;
+            sh_.why.compare_exchange_strong(expected, 2);
+            sh_.stop.store(true);
+            return true;
+        }
+        return false;
+    }
+
+    void emit() {
+        if (sh_.max_cliques > 0) {
+            const int64_t k = sh_.found.fetch_add(1) + 1;
+            if (k > sh_.max_cliques) {
+                int expected = 0;
+                sh_.why.compare_exchange_strong(expected, 1);
+                sh_.stop.store(true);
+                return;
+            }
+        }
+        tmp_.clear();
+        tmp_.push_back(root_);
+        for (int32_t r : R_) tmp_.push_back(L_[r]);
+        std::sort(tmp_.begin(), tmp_.end());
+        out.data.insert(out.data.end(), tmp_.begin(), tmp_.end());
+        out.off.push_back((int64_t)out.data.size());
+    }
+
+    void expand(int depth) {
+        if (should_stop()) return;
+        uint64_t *P = level(depth, 0), *X = level(depth, 1);
+        int pc = 0;
+        for (int w = 0; w < Wp_; ++w) pc += popcount64(P[w]);
+        if (pc == 0) {
+            for (int w = 0; w < W_; ++w)
+                if (X[w]) return;
+            if ((int)R_.size() + 1 >= min_size_) emit();
+            return;
+        }
+        if ((int)R_.size() + 1 + pc < min_size_) return;
+
+        // Pivot: the vertex of P u X with the most neighbours in P.
+        int pivot = -1, best = -1;
+        for (int w = 0; w < W_ && best < pc; ++w) {
+            uint64_t bits = (w < Wp_ ? P[w] : 0) | X[w];
+            while (bits) {
+                const int u = w * 64 + __builtin_ctzll(bits);
+                bits &= bits - 1;
+                const uint64_t *ru = row(u);
+                int c = 0;
+                for (int k = 0; k < Wp_; ++k) c += popcount64(P[k] & ru[k]);
+                if (c > best) {
+                    best = c;
+                    pivot = u;
+                    if (c == pc) break;
+                }
+            }
+        }
+        uint64_t *cand = level(depth, 2);
+        {
+            const uint64_t *rp = row(pivot);
+            for (int k = 0; k < Wp_; ++k) cand[k] = P[k] & ~rp[k];
+        }
+        uint64_t *NP = level(depth + 1, 0), *NX = level(depth + 1, 1);
+        // level() may have grown levels_ (the outer vector); inner buffers never move once sized.
+        P = level(depth, 0);
+        X = level(depth, 1);
+        cand = level(depth, 2);
+        for (int w = 0; w < Wp_; ++w) {
+            uint64_t bits = cand[w];
+            while (bits) {
+                const int u = w * 64 + __builtin_ctzll(bits);
+                bits &= bits - 1;
+                const uint64_t *ru = row(u);
+                for (int k = 0; k < Wp_; ++k) NP[k] = P[k] & ru[k];
+                for (int k = Wp_; k < W_; ++k) NP[k] = 0;
+                for (int k = 0; k < W_; ++k) NX[k] = X[k] & ru[k];
+                R_.push_back(u);
+                expand(depth + 1);
+                R_.pop_back();
+                if (sh_.stop.load(std::memory_order_relaxed)) return;
+                P[w] &= ~(uint64_t(1) << (u & 63));
+                X[w] |= uint64_t(1) << (u & 63);
+            }
+        }
+    }
+};
+
+}  // namespace
+
+CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
+                           int nthreads) {
+    cap_hit.clear();
+    if (min_size < 1) min_size = 1;
+    nthreads = resolve_threads(nthreads);
+    // With a count cap, run serially so that the partial list is reproducible.
+    if (caps.max_cliques > 0) nthreads = 1;
+    const int64_t n = g.n;
+    const std::vector<int32_t> order = degeneracy_order(g);
+    std::vector<int32_t> rank(n);
+    for (int64_t i = 0; i < n; ++i) rank[order[i]] = (int32_t)i;
+
+    Shared sh;
+    sh.max_cliques = caps.max_cliques;
+    if (caps.time_limit_s > 0) {
+        sh.timed = true;
+        sh.deadline = std::chrono::steady_clock::now() +
+                      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                          std::chrono::duration<double>(caps.time_limit_s));
+    }
+
+    std::vector<CliqueList> parts(nthreads);
+#pragma omp parallel num_threads(nthreads)
+    {
+        Worker wk(g, min_size, sh);
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t i = 0; i < n; ++i) {
+            if (sh.stop.load(std::memory_order_relaxed)) continue;
+            wk.run_root(order[i], rank);
+        }
+        parts[omp_get_thread_num()] = std::move(wk.out);
+    }
+
+    if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);
+    if (sh.why.load() == 2) {
+        char buf[64];
+        std::snprintf(buf, sizeof buf, "time_limit=%gs", caps.time_limit_s);
+        cap_hit = buf;
+    }
+
+    // Canonical order: lexicographic over the (ascending) member lists.
+    struct Ref {
+        const int32_t *p;
+        int64_t len;
+    };
+    std::vector<Ref> refs;
+    size_t total = 0;
+    for (auto &pt : parts) {
+        for (size_t c = 0; c < pt.size(); ++c) refs.push_back({pt.begin(c), (int64_t)pt.len(c)});
+        total += pt.data.size();
+    }
+    std::sort(refs.begin(), refs.end(), [](const Ref &a, const Ref &b) {
+        return std::lexicographical_compare(a.p, a.p + a.len, b.p, b.p + b.len);
+    });
+    CliqueList out;
+    out.data.reserve(total);
+    out.off.reserve(refs.size() + 1);
+    for (const Ref &r : refs) {
+        out.data.insert(out.data.end(), r.p, r.p + r.len);
+        out.off.push_back((int64_t)out.data.size());
+    }
+    return out;
+}
+
+}  // namespace fastmac

@@ -1,0 +1,275 @@
+// MAC end to end (spec 2-5): graphs, clustering/reduction, maximal cliques, node-guided selection,
+// hypotheses, MAE scoring and refinement. Mirrors fastmac_exp/backends/python_mac.py.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <functional>
+
+#include "mac_core.hpp"
+#include "omp_compat.hpp"
+
+namespace fastmac {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+inline double ms_since(Clock::time_point t0) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+// The reference code's Otsu threshold on the clustering coefficients, quirks included (spec 2.4, 9.7).
+double otsu(const std::vector<double> &cc) {
+    const double lo = *std::min_element(cc.begin(), cc.end());
+    const double hi = *std::max_element(cc.begin(), cc.end());
+    const double dflt = (hi - lo) / 2.0;
+    if (hi == 0.0 || hi == lo) return dflt;
+    const double h = (hi - lo) / 100.0;
+    double hist[100] = {0}, sums[100] = {0};
+    for (double v : cc) {
+        double b = std::floor(v / h);
+        int bi = b >= 99.0 ? 99 : (b < 0.0 ? 0 : (int)b);
+        hist[bi] += 1.0;
+        sums[bi] += v;
+    }
+    double total_n = 0, total_s = 0;
+    for (int i = 0; i < 100; ++i) {
+        total_n += hist[i];
+        total_s += sums[i];
+    }
+    double n1 = 0, s1 = 0, best = -1000.0;
+    int best_i = -1;
+    for (int i = 0; i < 100; ++i) {
+        n1 += hist[i];
+        s1 += sums[i];
+        if (n1 == 0) continue;
+        const double n2 = total_n - n1;
+        if (n2 == 0) break;
+        const double m1 = s1 / n1, m2 = (total_s - s1) / n2;
+        const double score = n1 * n2 * (m1 - m2) * (m1 - m2);
+        if (score > best) {
+            best = score;
+            best_i = i;
+        }
+    }
+    return best_i < 0 ? dflt : best_i * (hi - lo) / 100.0;
+}
+
+}  // namespace
+
+Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) {
+    nthreads = resolve_threads(nthreads);
+    const int64_t n = W.n;
+    const int64_t *ptr = W.ptr.data();
+    const int32_t *col = W.col.data();
+    // Cube roots of G on its support; triangles (i < a < b) with all three G edges non-zero add
+    // cbrt(G_ia) cbrt(G_ib) cbrt(G_ab) to w_i, w_a and w_b.
+    std::vector<double> C(G.size());
+    for (size_t p = 0; p < G.size(); ++p) C[p] = G[p] != 0.0 ? std::cbrt(G[p]) : 0.0;
+    std::vector<std::vector<double>> tri_t(nthreads);
+#pragma omp parallel num_threads(nthreads)
+    {
+        std::vector<double> dense(n, 0.0);
+        std::vector<double> &tri = tri_t[omp_get_thread_num()];
+        tri.assign(n, 0.0);
+#pragma omp for schedule(dynamic, 8)
+        for (int64_t i = 0; i < n; ++i) {
+            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = C[p];
+            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) {
+                if (C[p] == 0.0) continue;
+                const int32_t a = col[p];
+                const double cia = C[p];
+                for (int64_t q = W.upper[a]; q < ptr[a + 1]; ++q) {
+                    const double cib = dense[col[q]];
+                    if (cib == 0.0 || C[q] == 0.0) continue;
+                    const double t = cia * cib * C[q];
+                    tri[i] += t;
+                    tri[a] += t;
+                    tri[col[q]] += t;
+                }
+            }
+            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = 0.0;
+        }
+    }
+    Clustering out;
+    out.cc.assign(n, 0.0);
+    double tri_sum = 0.0, pair_sum = 0.0, cc_sum = 0.0;
+    for (int64_t i = 0; i < n; ++i) {
+        double tri = 0.0;
+        for (int t = 0; t < nthreads; ++t) tri += tri_t[t][i];
+        int64_t deg = 0;
+        for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) deg += G[p] != 0.0;
+        if (deg > 1) {
+            const double pairs = (double)deg * (double)(deg - 1) / 2.0;
+            out.cc[i] = tri / pairs;
+            tri_sum += tri;
+            pair_sum += pairs;
+        }
+        cc_sum += out.cc[i];
+    }
+    out.avg = n > 0 ? cc_sum / (double)n : 0.0;
+    out.total = pair_sum > 0 ? tri_sum / pair_sum : 0.0;
+    out.otsu = n > 0 ? otsu(out.cc) : 0.0;
+    return out;
+}
+
+MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads) {
+    nthreads = resolve_threads(nthreads);
+    if (n < 3) throw RegistrationFailed("need at least 3 correspondences, got " + std::to_string(n));
+    if (!(p.inlier_threshold > 0)) throw std::invalid_argument("inlier_threshold must be positive");
+    if (n > INT32_MAX) throw std::invalid_argument("too many correspondences");
+    MacResult res;
+    const double tau = p.inlier_threshold;
+
+    // ---- graph: W and G
+    auto t0 = Clock::now();
+    Csr W = first_order(src, tgt, n, p.graph, nthreads);
+    std::vector<double> G = second_order(W, nthreads);
+    res.t_graph = ms_since(t0);
+    res.n_edges = W.n_edges();
+    double gmax = 0.0;
+    for (int64_t i = 0; i < n; ++i)
+        for (int64_t q = W.upper[i]; q < W.ptr[i + 1]; ++q)
+            if (G[q] > 0.0) {
+                ++res.n_sog_edges;
+                gmax = std::max(gmax, G[q]);
+            }
+    if (res.n_sog_edges == 0)
+        throw RegistrationFailed("graph has no second-order edge (" + std::to_string(res.n_edges) +
+                                 " first-order edges among " + std::to_string(n) + " correspondences)");
+
+    // ---- cliques: optional reduction (spec 2.5), then the search on G's support
+    t0 = Clock::now();
+    std::vector<char> good;  // empty = no reduction
+    // cc_i <= max G, so with max G <= 3 the condition min(otsu, avg, total) > 3 cannot hold.
+    if (p.reduction && n > 50 && gmax > 3.0 * (1.0 - 1e-12)) {
+        Clustering cl = clustering(W, G, nthreads);
+        const double cmax = *std::max_element(cl.cc.begin(), cl.cc.end());
+        if (cmax != 0.0 && std::min(cl.otsu, std::min(cl.avg, cl.total)) > 3.0) {
+            const double m = std::max(cl.otsu, cl.total);
+            std::vector<double> sorted = cl.cc;
+            std::sort(sorted.begin(), sorted.end(), std::greater<double>());
+            const double c50 = sorted[std::min<int64_t>(49, n - 1)];
+            double f = 10.0;
+            while (f * m > c50) f -= 0.05;
+            const double cut = f * m;
+            good.assign(n, 0);
+            for (int64_t i = 0; i < n; ++i) good[i] = cl.cc[i] > cut;
+            res.reduced = true;
+        }
+    }
+    AdjGraph cg;
+    cg.n = n;
+    cg.ptr.assign(n + 1, 0);
+    for (int64_t i = 0; i < n; ++i) {
+        for (int64_t q = W.ptr[i]; q < W.ptr[i + 1]; ++q) {
+            if (G[q] > 0.0 && (good.empty() || (good[i] && good[W.col[q]]))) cg.col.push_back(W.col[q]);
+        }
+        cg.ptr[i + 1] = (int64_t)cg.col.size();
+    }
+    CliqueCaps caps;
+    caps.max_cliques = p.max_cliques;
+    caps.time_limit_s = p.time_limit_s;
+    CliqueList cliques = maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads);
+    cg = AdjGraph();  // free it before the next stages
+    res.t_cliques = ms_since(t0);
+    res.n_cliques = (int64_t)cliques.size();
+    if (cliques.size() == 0)
+        throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));
+
+    // ---- node-guided selection (spec 4) with the un-reduced G
+    t0 = Clock::now();
+    const int64_t nc = (int64_t)cliques.size();
+    std::vector<double> cw(nc);
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 256)
+    for (int64_t c = 0; c < nc; ++c) {
+        const int32_t *m = cliques.begin(c);
+        const size_t k = cliques.len(c);
+        double s = 0.0;
+        for (size_t a = 0; a < k; ++a)
+            for (size_t b = a + 1; b < k; ++b) s += csr_lookup(W, G, m[a], m[b]);
+        cw[c] = s;
+    }
+    std::vector<double> best_w(n, 0.0);
+    std::vector<int64_t> owner(n, -1);
+    for (int64_t c = 0; c < nc; ++c) {
+        const int32_t *m = cliques.begin(c);
+        for (size_t a = 0; a < cliques.len(c); ++a)
+            if (cw[c] > best_w[m[a]]) {
+                best_w[m[a]] = cw[c];
+                owner[m[a]] = c;
+            }
+    }
+    std::vector<int64_t> selected;
+    {
+        std::vector<char> seen(nc, 0);
+        for (int64_t i = 0; i < n; ++i) {
+            const int64_t c = owner[i];
+            if (c >= 0 && !seen[c]) {
+                seen[c] = 1;
+                selected.push_back(c);
+            }
+        }
+    }
+    res.n_selected = (int64_t)selected.size();
+    res.t_selection = ms_since(t0);
+
+    // ---- hypotheses, scores, refinement (spec 5)
+    t0 = Clock::now();
+    const int64_t nh = (int64_t)selected.size();
+    double best_score = 0.0;
+    int64_t best_h = -1;
+#pragma omp parallel num_threads(nthreads)
+    {
+        double my_score = 0.0;
+        int64_t my_h = -1;
+#pragma omp for schedule(dynamic, 16)
+        for (int64_t h = 0; h < nh; ++h) {
+            const int64_t c = selected[h];
+            const Pose T = kabsch(src, tgt, cliques.begin(c), (int64_t)cliques.len(c), nullptr);
+            const double s = mae_score(T, src, tgt, n, tau, nullptr);
+            if (s > my_score || (s == my_score && my_h >= 0 && h < my_h)) {
+                my_score = s;
+                my_h = h;
+            }
+        }
+#pragma omp critical
+        {
+            if (my_h >= 0 &&
+                (best_h < 0 || my_score > best_score || (my_score == best_score && my_h < best_h))) {
+                best_score = my_score;
+                best_h = my_h;
+            }
+        }
+    }
+    if (best_h < 0 || !(best_score > 0.0)) throw RegistrationFailed("no hypothesis has a positive score");
+    const int64_t bc = selected[best_h];
+    res.score = best_score;
+    res.clique.assign(cliques.begin(bc), cliques.begin(bc) + cliques.len(bc));
+    res.pose_unrefined = kabsch(src, tgt, cliques.begin(bc), (int64_t)cliques.len(bc), nullptr);
+
+    Pose pose = res.pose_unrefined;
+    std::vector<double> e(n);
+    std::vector<int32_t> inl;
+    std::vector<double> wts;
+    double prev = best_score;
+    for (int it = 0; it < p.refine_iters; ++it) {
+        const double s = mae_score(pose, src, tgt, n, tau, e.data());
+        if (s < prev) break;
+        prev = s;
+        inl.clear();
+        wts.clear();
+        for (int64_t i = 0; i < n; ++i)
+            if (e[i] < tau) {
+                inl.push_back((int32_t)i);
+                const double r = e[i] / tau;
+                wts.push_back(1.0 / (1.0 + r * r));
+            }
+        if (inl.size() < 3) break;
+        pose = kabsch(src, tgt, inl.data(), (int64_t)inl.size(), wts.data());
+    }
+    res.pose = pose;
+    res.t_pose = ms_since(t0);
+    return res;
+}
+
+}  // namespace fastmac

@@ -1,0 +1,147 @@
+// C++ core of fastmac_exp: compatibility graphs, maximal cliques and MAC (spec sections 2-5, 7.2-7.3).
+//
+// Memory grows with the number of graph edges, never with N^2: the first-order graph W is found by an
+// O(N^2) pair test that stores only edges, and the second-order weights G_ij = W_ij * sum_k W_ik W_kj
+// are computed on W's support from sorted neighbour lists (CSR).
+#pragma once
+
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace fastmac {
+
+enum class Kernel { Gaussian, Quadratic };
+
+struct GraphParams {
+    Kernel kernel = Kernel::Gaussian;
+    double alpha = 0.06;
+    double tau = 0.1;
+    double threshold = 0.995;
+};
+
+// Thrown when MAC cannot produce a pose; Python sees fastmac_exp.errors.RegistrationFailed.
+struct RegistrationFailed : std::runtime_error {
+    using std::runtime_error::runtime_error;
+};
+
+Kernel parse_kernel(const std::string &name);  // throws std::invalid_argument
+void check_params(const GraphParams &gp);       // throws std::invalid_argument
+
+int resolve_threads(int num_threads);  // 0 -> OpenMP default; 1 without OpenMP
+
+// ---------------------------------------------------------------------------------------------
+// Graphs
+
+// Symmetric weighted graph in CSR form: rows sorted ascending, no self-loops. upper[i] is the first
+// position of row i whose column is > i, so row i = [lower part | upper part].
+struct Csr {
+    int64_t n = 0;
+    std::vector<int64_t> ptr;    // n + 1
+    std::vector<int64_t> upper;  // n
+    std::vector<int32_t> col;
+    std::vector<double> w;
+    int64_t nnz() const { return (int64_t)col.size(); }
+    int64_t n_edges() const { return nnz() / 2; }
+};
+
+// The first-order graph W (spec 2.1-2.2). src, tgt: row-major (n, 3).
+Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads);
+
+// G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
+std::vector<double> second_order(const Csr &W, int nthreads);
+
+// Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
+double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
+
+struct Signals {
+    std::vector<double> degree, highpass, lowpass;
+    int64_t n_edges = 0;
+};
+
+// Sampler signals (spec 7.2-7.3) on the SOG with (FastMAC) or without (MAC) self-loops.
+Signals graph_signals(const Csr &W, const std::vector<double> &G, bool self_loops, int nthreads);
+
+// ---------------------------------------------------------------------------------------------
+// Maximal cliques
+
+// Unweighted undirected graph: sorted rows, symmetric, no self-loops.
+struct AdjGraph {
+    int64_t n = 0;
+    std::vector<int64_t> ptr;
+    std::vector<int32_t> col;
+};
+
+// Builds an AdjGraph from an arbitrary edge list (either direction, duplicates, self-loops ignored).
+AdjGraph adj_from_edges(int64_t n, const int64_t *i, const int64_t *j, int64_t m);
+
+struct CliqueList {
+    std::vector<int32_t> data;        // members, concatenated
+    std::vector<int64_t> off{0};      // clique c = data[off[c] .. off[c+1])
+    size_t size() const { return off.size() - 1; }
+    size_t len(size_t c) const { return (size_t)(off[c + 1] - off[c]); }
+    const int32_t *begin(size_t c) const { return data.data() + off[c]; }
+};
+
+struct CliqueCaps {
+    int64_t max_cliques = 0;    // 0 = no cap
+    double time_limit_s = 0.0;  // 0 = no limit
+};
+
+// Every maximal clique of size >= min_size (Bron-Kerbosch with pivoting in degeneracy order,
+// Eppstein-Loeffler-Strash), members ascending, list in lexicographic (canonical) order.
+// When a cap stops the search, cap_hit names it and the partial list is returned.
+CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
+                           int nthreads);
+
+// ---------------------------------------------------------------------------------------------
+// Poses
+
+struct Pose {
+    double R[9];  // row-major
+    double t[3];
+};
+
+Pose identity_pose();
+
+// Kabsch over the rows idx (or all rows when idx is null) with optional weights; centroids are the
+// UNWEIGHTED means, H = sum w (p - pbar)(q - qbar)^T = U S V^T, R = V diag(1, 1, +-1) U^T, t = qbar - R pbar.
+Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m, const double *weights);
+
+// MAE score (spec 5.2) over all n correspondences; e (optional, size n) receives the residuals.
+double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e);
+
+// ---------------------------------------------------------------------------------------------
+// MAC
+
+struct MacParams {
+    GraphParams graph;
+    double inlier_threshold = 0.1;
+    int min_clique_size = 3;
+    int refine_iters = 20;
+    bool reduction = true;
+    int64_t max_cliques = 0;
+    double time_limit_s = 0.0;
+};
+
+struct MacResult {
+    Pose pose, pose_unrefined;
+    std::vector<int64_t> clique;
+    double score = 0.0;
+    int64_t n_cliques = 0, n_selected = 0, n_edges = 0, n_sog_edges = 0;
+    bool reduced = false;
+    std::string cap_hit;
+    double t_graph = 0, t_cliques = 0, t_selection = 0, t_pose = 0;  // milliseconds
+};
+
+MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads);
+
+// Pieces of MAC, exposed for tests.
+struct Clustering {
+    std::vector<double> cc;  // clustering coefficients on G (spec 2.4)
+    double otsu = 0, avg = 0, total = 0;
+};
+Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads);
+
+}  // namespace fastmac

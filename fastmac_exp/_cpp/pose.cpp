@@ -1,0 +1,150 @@
+// Kabsch fits (spec 5.1, 5.3) with a one-sided Jacobi SVD of the 3x3 cross-covariance, and the MAE
+// hypothesis score (spec 5.2).
+#include <algorithm>
+#include <cmath>
+
+#include "mac_core.hpp"
+
+namespace fastmac {
+
+Pose identity_pose() {
+    Pose T{};
+    T.R[0] = T.R[4] = T.R[8] = 1.0;
+    return T;
+}
+
+namespace {
+
+inline void cross(const double *a, const double *b, double *c) {
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+inline double norm3(const double *a) { return std::sqrt(dot3(a, a)); }
+
+// A unit vector orthogonal to the unit vector a.
+void any_orthogonal(const double *a, double *out) {
+    const double ax = std::fabs(a[0]), ay = std::fabs(a[1]), az = std::fabs(a[2]);
+    double e[3] = {0, 0, 0};
+    if (ax <= ay && ax <= az)
+        e[0] = 1;
+    else if (ay <= az)
+        e[1] = 1;
+    else
+        e[2] = 1;
+    cross(a, e, out);
+    const double nn = norm3(out);
+    for (int k = 0; k < 3; ++k) out[k] /= nn;
+}
+
+// R from H (row-major 3x3, H = sum (p - pbar)(q - qbar)^T): with H = U S V^T, R = V diag(1, 1, d) U^T,
+// d = sign det(V U^T). Equivalently R = v1 u1^T + v2 u2^T + (v1 x v2)(u1 x u2)^T, which depends only on
+// the two largest singular pairs; that makes it exact for the rank-2 H of three-point cliques.
+void rotation_from_h(const double *H, double *R) {
+    // One-sided Jacobi: rotate the columns of A = H until they are orthogonal; then A = H V = U S.
+    double a[3][3], v[3][3];  // a[c] = column c of A, v[c] = column c of V
+    for (int c = 0; c < 3; ++c)
+        for (int r = 0; r < 3; ++r) {
+            a[c][r] = H[3 * r + c];
+            v[c][r] = r == c ? 1.0 : 0.0;
+        }
+    for (int sweep = 0; sweep < 60; ++sweep) {
+        bool rotated = false;
+        for (int p = 0; p < 2; ++p)
+            for (int q = p + 1; q < 3; ++q) {
+                const double alpha = dot3(a[p], a[p]), beta = dot3(a[q], a[q]), gamma = dot3(a[p], a[q]);
+                if (gamma == 0.0 || std::fabs(gamma) <= 1e-15 * std::sqrt(alpha * beta)) continue;
+                rotated = true;
+                const double zeta = (beta - alpha) / (2.0 * gamma);
+                const double t = (zeta >= 0 ? 1.0 : -1.0) / (std::fabs(zeta) + std::sqrt(1.0 + zeta * zeta));
+                const double c = 1.0 / std::sqrt(1.0 + t * t), s = c * t;
+                for (int r = 0; r < 3; ++r) {
+                    const double ap = a[p][r], aq = a[q][r];
+                    a[p][r] = c * ap - s * aq;
+                    a[q][r] = s * ap + c * aq;
+                    const double vp = v[p][r], vq = v[q][r];
+                    v[p][r] = c * vp - s * vq;
+                    v[q][r] = s * vp + c * vq;
+                }
+            }
+        if (!rotated) break;
+    }
+    double sig[3] = {norm3(a[0]), norm3(a[1]), norm3(a[2])};
+    int ord[3] = {0, 1, 2};
+    std::sort(ord, ord + 3, [&](int x, int y) { return sig[x] > sig[y]; });
+    const int i1 = ord[0], i2 = ord[1];
+    if (!(sig[i1] > 0.0)) {  // H == 0: no information
+        for (int k = 0; k < 9; ++k) R[k] = (k % 4 == 0) ? 1.0 : 0.0;
+        return;
+    }
+    double u1[3], u2[3], v1[3], v2[3], u3[3], v3[3];
+    for (int r = 0; r < 3; ++r) {
+        u1[r] = a[i1][r] / sig[i1];
+        v1[r] = v[i1][r];
+        v2[r] = v[i2][r];
+    }
+    if (sig[i2] > 1e-14 * sig[i1]) {
+        for (int r = 0; r < 3; ++r) u2[r] = a[i2][r] / sig[i2];
+        // Re-orthogonalise against u1 (tiny drift only).
+        const double d = dot3(u1, u2);
+        for (int r = 0; r < 3; ++r) u2[r] -= d * u1[r];
+        const double nn = norm3(u2);
+        for (int r = 0; r < 3; ++r) u2[r] /= nn;
+    } else {  // rank 1: the rotation about u1 is arbitrary
+        any_orthogonal(u1, u2);
+    }
+    cross(u1, u2, u3);
+    cross(v1, v2, v3);
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) R[3 * r + c] = v1[r] * u1[c] + v2[r] * u2[c] + v3[r] * u3[c];
+}
+
+}  // namespace
+
+Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m, const double *weights) {
+    Pose T = identity_pose();
+    if (m <= 0) return T;
+    double pb[3] = {0, 0, 0}, qb[3] = {0, 0, 0};
+    for (int64_t k = 0; k < m; ++k) {
+        const int64_t i = idx ? idx[k] : k;
+        for (int r = 0; r < 3; ++r) {
+            pb[r] += src[3 * i + r];
+            qb[r] += tgt[3 * i + r];
+        }
+    }
+    for (int r = 0; r < 3; ++r) {
+        pb[r] /= (double)m;
+        qb[r] /= (double)m;
+    }
+    double H[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    for (int64_t k = 0; k < m; ++k) {
+        const int64_t i = idx ? idx[k] : k;
+        const double wk = weights ? weights[k] : 1.0;
+        const double dp[3] = {src[3 * i] - pb[0], src[3 * i + 1] - pb[1], src[3 * i + 2] - pb[2]};
+        const double dq[3] = {tgt[3 * i] - qb[0], tgt[3 * i + 1] - qb[1], tgt[3 * i + 2] - qb[2]};
+        for (int r = 0; r < 3; ++r)
+            for (int c = 0; c < 3; ++c) H[3 * r + c] += wk * dp[r] * dq[c];
+    }
+    rotation_from_h(H, T.R);
+    for (int r = 0; r < 3; ++r)
+        T.t[r] = qb[r] - (T.R[3 * r] * pb[0] + T.R[3 * r + 1] * pb[1] + T.R[3 * r + 2] * pb[2]);
+    return T;
+}
+
+double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e) {
+    const double *R = T.R, *t = T.t;
+    double score = 0.0;
+    for (int64_t i = 0; i < n; ++i) {
+        const double *p = src + 3 * i, *q = tgt + 3 * i;
+        const double x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0] - q[0];
+        const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
+        const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
+        const double err = std::sqrt(x * x + y * y + z * z);
+        if (e) e[i] = err;
+        if (err < tau) score += (tau - err) / tau;
+    }
+    return score;
+}
+
+}  // namespace fastmac

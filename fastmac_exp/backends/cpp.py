@@ -1,0 +1,132 @@
+"""MAC on the C++ core (`fastmac_exp._mac_core`, built by `pip install -e .`).
+
+Same algorithm and the same deterministic choices as `fastmac_exp.backends.python_mac` (canonical
+clique order, node-guided selection, earliest hypothesis on score ties), so both backends select the
+same cliques and return the same pose up to floating-point rounding.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fastmac_exp.errors import BackendUnavailable, RegistrationFailed
+from fastmac_exp.params import GraphParams, MacParams
+from fastmac_exp.types import Correspondences, RegistrationResult
+
+try:  # the compiled extension; absent in a source checkout that was never built
+    from fastmac_exp import _mac_core as _core
+except ImportError as exc:  # pragma: no cover - depends on the build
+    _core = None
+    _IMPORT_ERROR: str = str(exc)
+else:
+    _IMPORT_ERROR = ""
+
+BUILD_HINT = (
+    "the C++ core fastmac_exp._mac_core is not built ({why}). Build it from the repository root with "
+    "`pip install --no-build-isolation -e .` (or `pip install -e .`); this needs a C++17 compiler and "
+    "CMake >= 3.18. Meanwhile backend=python runs the same algorithm in pure Python."
+)
+
+
+def available() -> bool:
+    """True when the compiled extension can be imported."""
+    return _core is not None
+
+
+def core() -> Any:
+    """The extension module; raises BackendUnavailable with build instructions when it is missing."""
+    if _core is None:
+        raise BackendUnavailable(BUILD_HINT.format(why=_IMPORT_ERROR or "import failed"))
+    return _core
+
+
+def _points(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _graph_args(gp: GraphParams) -> tuple[str, float, float, float]:
+    return gp.kernel, float(gp.alpha), float(gp.tau), float(gp.threshold)
+
+
+def graph_edges(
+    src: np.ndarray, tgt: np.ndarray, gp: GraphParams, num_threads: int = 0
+) -> dict[str, np.ndarray]:
+    """Upper-triangle edges of W: `i < j`, weights `w = W_ij` and second-order weights `g = G_ij`."""
+    return core().graph_edges(_points(src), _points(tgt), *_graph_args(gp), num_threads=num_threads)
+
+
+def graph_signals(
+    src: np.ndarray, tgt: np.ndarray, gp: GraphParams, self_loops: bool = True, num_threads: int = 0
+) -> dict[str, Any]:
+    """Node signals of the SOG for the samplers (spec 7.2-7.3).
+
+    Returns `degree` (generalized degree s), `highpass` (signed; samplers take |.|), `lowpass` and
+    `n_edges` (first-order edges). self_loops=True is FastMAC's graph (W_ii = 1), False is MAC's.
+    """
+    return core().graph_signals(
+        _points(src), _points(tgt), *_graph_args(gp), self_loops=self_loops, num_threads=num_threads
+    )
+
+
+def maximal_cliques(
+    n: int,
+    i: np.ndarray,
+    j: np.ndarray,
+    min_size: int = 3,
+    max_cliques: int = 0,
+    time_limit_s: float = 0.0,
+    num_threads: int = 0,
+) -> tuple[list[np.ndarray], str]:
+    """Maximal cliques of size >= min_size of the graph with edges (i, j), in canonical order."""
+    return core().maximal_cliques(
+        int(n),
+        np.ascontiguousarray(i, dtype=np.int64),
+        np.ascontiguousarray(j, dtype=np.int64),
+        min_size=int(min_size),
+        max_cliques=int(max_cliques),
+        time_limit_s=float(time_limit_s),
+        num_threads=num_threads,
+    )
+
+
+class CppBackend:
+    """MAC (graph, cliques, selection, pose) in the C++ core, parallel with OpenMP."""
+
+    name = "cpp"
+
+    def __init__(self, num_threads: int = 0) -> None:
+        self._core = core()
+        self.num_threads = int(num_threads)
+
+    def register(self, corr: Correspondences, params: MacParams) -> RegistrationResult:
+        n = len(corr)
+        if n < 3:
+            raise RegistrationFailed(f"need at least 3 correspondences, got {n}")
+        # The core raises fastmac_exp.errors.RegistrationFailed itself (no edge, no clique, no pose).
+        r = self._core.mac(
+            _points(corr.src),
+            _points(corr.tgt),
+            *_graph_args(params.graph),
+            inlier_threshold=float(params.inlier_threshold),
+            min_clique_size=int(params.min_clique_size),
+            refine_iters=int(params.refine_iters),
+            reduction=bool(params.reduction),
+            max_cliques=int(params.max_cliques),
+            time_limit_s=float(params.time_limit_s),
+            num_threads=self.num_threads,
+        )
+        return RegistrationResult(
+            pose=r["pose"],
+            pose_unrefined=r["pose_unrefined"],
+            kept=np.arange(n),
+            clique=r["clique"],
+            score=float(r["score"]),
+            n_cliques=int(r["n_cliques"]),
+            n_selected=int(r["n_selected"]),
+            n_edges=int(r["n_edges"]),
+            reduced=bool(r["reduced"]),
+            cap_hit=str(r["cap_hit"]),
+            timings=dict(r["timings"]),
+        )
