@@ -176,3 +176,22 @@ def test_xyz_response_hand_case():
 def test_xyz_code_validation():
     with pytest.raises(InputError, match="three 0/1 digits"):
         XYZSampler("12")
+
+
+def test_deterministic_sampler_greedy_hand_case():
+    from fastmac_exp.deterministic import greedy_e_optimal
+
+    # rows: e1, e2, (e1+e2)/sqrt2 scaled down; picking e1 then e2 maximises sigma_min of the 2 x 2 block
+    v = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.5], [0.9, 0.1]])
+    assert sorted(greedy_e_optimal(v, 2).tolist()) == [0, 1]
+
+
+def test_deterministic_sampler_refuses_beyond_caps():
+    from fastmac_exp.deterministic import DeterministicSampler
+
+    corr, _ = make_correspondences(n=300)
+    gp, fam = _ctx()
+    with pytest.raises(InputError, match="caps"):
+        DeterministicSampler(max_n=100).sample(corr, 0.2, gp, fam, np.random.default_rng(0))
+    res = DeterministicSampler().sample(corr, 0.05, gp, fam, np.random.default_rng(0))
+    assert len(set(res.indices.tolist())) == 15
