@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -342,11 +343,17 @@ def read_correspondences(path: str | Path, labels_path: str | Path | None = None
 # 3DMatch gt.log
 
 
-def read_gt_log(path: str | Path) -> list[tuple[int, int, int, np.ndarray]]:
-    """Entries (i, j, n_fragments, T) of a 3DMatch gt.log.
+class GtLogEntry(NamedTuple):
+    i: int  # target fragment
+    j: int  # source fragment
+    n: int  # fragment count of the scene
+    T: np.ndarray  # 4x4, maps fragment j into fragment i
+    line: int  # 1-based line of the entry header
 
-    T maps fragment j (the source) into fragment i (the target).
-    """
+
+def read_gt_log_entries(path: str | Path, rigid: bool = True) -> list[GtLogEntry]:
+    """The entries of a 3DMatch gt.log with their line numbers; `rigid=False` defers the rigidity check
+    (to `check_rigid`) so that one bad matrix fails only its own pair."""
     p = _path(path, "gt.log")
     lines = list(_lines(p))
     if len(lines) % 5:
@@ -369,9 +376,23 @@ def read_gt_log(path: str | Path) -> list[tuple[int, int, int, np.ndarray]]:
                     f"{p}, line {k2}: expected 4 numbers (a row of a 4x4 matrix), got {len(vals)}"
                 )
             rows.append(vals)
-        t = check_rigid(np.asarray(rows), f"{p}, entry '{i} {j} {n}' (line {k})")
-        out.append((i, j, n, t))
+        t = np.asarray(rows, dtype=np.float64)
+        if rigid:
+            t = check_rigid(t, gt_log_where(p, i, j, n, k))
+        out.append(GtLogEntry(i, j, n, t, k))
     return out
+
+
+def gt_log_where(path: str | Path, i: int, j: int, n: int, line: int) -> str:
+    return f"{path}, entry '{i} {j} {n}' (line {line})"
+
+
+def read_gt_log(path: str | Path) -> list[tuple[int, int, int, np.ndarray]]:
+    """Entries (i, j, n_fragments, T) of a 3DMatch gt.log, rigidity-checked.
+
+    T maps fragment j (the source) into fragment i (the target).
+    """
+    return [(e.i, e.j, e.n, e.T) for e in read_gt_log_entries(path)]
 
 
 # ----------------------------------------------------------------------------------------------------------
