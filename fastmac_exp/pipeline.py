@@ -10,13 +10,26 @@ import numpy as np
 
 from fastmac_exp.backends.base import Backend
 from fastmac_exp.descriptors.base import Descriptor
-from fastmac_exp.errors import InputError
+from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.metrics import pose_errors
 from fastmac_exp.params import MacParams, mac_params_for
 from fastmac_exp.samplers import NoSampler, SampleResult, Sampler
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
+
+
+def check_not_degenerate(src: np.ndarray, tgt: np.ndarray) -> None:
+    """A pose from duplicated or collinear points is not determined: refuse it instead of guessing."""
+    for name, pts in (("source", src), ("target", tgt)):
+        centred = pts - pts.mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False) if len(pts) >= 2 else np.zeros(1)
+        scale = max(float(np.abs(pts).max()), 1.0)
+        if len(sv) < 2 or sv[1] <= 1e-9 * scale * np.sqrt(len(pts)):
+            raise RegistrationFailed(
+                f"the winning clique's {name} points are duplicated or collinear ({len(pts)} points); "
+                "the rotation about their line is undetermined"
+            )
 
 
 def register_correspondences(
@@ -36,6 +49,7 @@ def register_correspondences(
     kept = sample.indices
     result = backend.register(corr.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
+    check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores

@@ -84,7 +84,15 @@ def compute_signals(
         from fastmac_exp.backends import cpp
 
         if cpp.available():
-            return cpp.graph_signals(corr.src, corr.tgt, gp, self_loops=self_loops)
+            out = cpp.graph_signals(corr.src, corr.tgt, gp, self_loops=self_loops)
+            if isinstance(out, dict):
+                out = GraphSignals(
+                    degree=np.asarray(out["degree"]),
+                    highpass=np.asarray(out["highpass"]),
+                    lowpass=np.asarray(out["lowpass"]),
+                    n_edges=int(out["n_edges"]),
+                )
+            return out
         if impl == "cpp":
             cpp.CppBackend()  # raises BackendUnavailable with build instructions
     if impl == "torch" or device != "cpu":
