@@ -1,0 +1,307 @@
+"""Trackers on hand-built PairOutcomes: the .rrd read back with rerun's own reader, the offline wandb run
+read back from its transaction log, and the Hydra multirun grouping."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from fastmac_exp.pipeline import PairOutcome
+from fastmac_exp.results import to_table
+from fastmac_exp.samplers import SampleResult
+from fastmac_exp.types import Correspondences, Pair, RegistrationResult
+
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[:3, 3] = [0.3, -0.1, 0.05]
+    return T
+
+
+def make_outcome(
+    index: int, name: str, *, clouds: bool = True, failed: bool = False, n: int = 40
+) -> PairOutcome:
+    """A small, fully hand-made outcome: n correspondences, the first half GT inliers."""
+    rng = np.random.default_rng(index)
+    gt = _rot_z(10.0 + index)
+    src = rng.uniform(-1, 1, (n, 3))
+    tgt = src @ gt[:3, :3].T + gt[:3, 3]
+    tgt[n // 2 :] += rng.uniform(0.5, 1.0, (n - n // 2, 3))  # outliers
+    labels = np.arange(n) < n // 2
+    corr = Correspondences(src=src, tgt=tgt, labels=labels)
+    row = {
+        "index": index, "pair": name, "dataset": "toy", "descriptor": "oracle", "sampler": "highpass",
+        "ratio": 0.5, "backend": "python", "seed": 0, "protocol": "honest", "error": "",
+    }  # fmt: skip
+    if failed:
+        row.update(error="RuntimeError: boom", success=False)
+        return PairOutcome(row=row)
+    pair = Pair(
+        name=name,
+        gt=gt,
+        src_cloud=rng.uniform(-1, 1, (300, 3)) if clouds else None,
+        tgt_cloud=rng.uniform(-1, 1, (250, 3)) if clouds else None,
+        voxel_size=0.05,
+    )
+    kept = np.arange(0, n, 2)
+    clique = np.arange(0, n // 2, 2)
+    result = RegistrationResult(
+        pose=gt, pose_unrefined=gt, kept=kept, clique=clique, score=3.0, n_cliques=5, n_selected=2,
+        n_edges=50, timings={"sampling": 0.5, "graph": 1.0, "cliques": 2.0, "selection": 0.25, "pose": 0.75,
+                             "total": 4.5},
+    )  # fmt: skip
+    sample = SampleResult(indices=kept, scores=np.ones(n))
+    row.update(
+        n_in=n, n_kept=len(kept), inlier_ratio_in=0.5, inlier_ratio_kept=0.5, clique_size=len(clique),
+        clique_inliers=len(clique), re_deg=0.1 * (index + 1), te_cm=1.0 + index, success=True,
+        t_describe_ms=10.0 + index, **{f"t_{k}_ms": v for k, v in result.timings.items()},
+    )  # fmt: skip
+    return PairOutcome(row=row, pair=pair, corr=corr, result=result, sample=sample)
+
+
+def run_tracker(tracker, run_dir: Path, outcomes: list[PairOutcome]) -> tuple[pd.DataFrame, dict]:
+    names = [o.row["pair"] for o in outcomes]
+    tracker.start({"ratio": 0.5, "sampler": {"name": "highpass"}, "seed": 0}, run_dir, names)
+    for o in outcomes:
+        tracker.log_pair(o)
+    table = to_table([o.row for o in outcomes])
+    summary = {"pairs": len(outcomes), "RR": 2 / 3, "RE_deg": 0.15, "complete": True, "sampler": "highpass"}
+    tracker.finish(table, summary)
+    return table, summary
+
+
+# -- rerun ------------------------------------------------------------------------------------------------
+@pytest.fixture
+def strict_rerun():
+    rr = pytest.importorskip("rerun")
+    was = rr.strict_mode()
+    rr.set_strict_mode(True)  # API misuse raises instead of logging a warning
+    yield rr
+    rr.set_strict_mode(was)
+
+
+def _rrd_contents(path: Path) -> dict[str, set[str]]:
+    """entity path -> archetype names, read with rerun's own RRD reader."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, set[str]] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        kinds = {
+            (f.metadata or {}).get(b"rerun:archetype", b"").decode().rsplit(".", 1)[-1]
+            for f in batch.schema
+            if (f.metadata or {}).get(b"rerun:kind") == b"data"
+        }
+        out.setdefault(chunk.entity_path, set()).update(k for k in kinds if k)
+    return out
+
+
+def test_rerun_per_run_recording(tmp_path, strict_rerun):
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+
+    outcomes = [
+        make_outcome(0, "scene/a"),
+        make_outcome(1, "b", clouds=False),
+        make_outcome(2, "c", failed=True),
+        make_outcome(3, "d"),
+    ]
+    tracker = RerunTracker(per="run", max_pairs=2, max_points=100)
+    run_tracker(tracker, tmp_path, outcomes)
+    rrd = tmp_path / "recording.rrd"
+    assert rrd.is_file() and rrd.stat().st_size > 0
+    got = _rrd_contents(rrd)
+    a = "/pairs/" + strict_rerun.escape_entity_path_part("scene/a")
+    expected = {
+        f"{a}/matches/source": "Points3D",
+        f"{a}/matches/target": "Points3D",
+        f"{a}/matches/correspondences": "LineStrips3D",
+        f"{a}/matches/sampled": "LineStrips3D",
+        f"{a}/matches/clique": "LineStrips3D",
+        f"{a}/registration/target": "Points3D",
+        f"{a}/registration/estimate": "Transform3D",
+        f"{a}/registration/estimate/source": "Points3D",
+        f"{a}/registration/gt": "Transform3D",
+        f"{a}/registration/gt/source": "Points3D",
+        f"{a}/info": "TextDocument",
+        "/pairs/b/matches/correspondences": "LineStrips3D",  # no clouds: correspondences stand in
+        "/pairs/b/registration/estimate/source": "Points3D",
+        "/metrics/time_ms/graph": "Scalars",
+        "/metrics/time_ms/total": "Scalars",
+        "/metrics/running_rr": "Scalars",
+        "/log": "TextLog",
+    }
+    for entity, archetype in expected.items():
+        assert archetype in got.get(entity, set()), (entity, got.get(entity))
+    assert not any(e.startswith("/pairs/d") for e in got)  # max_pairs=2 (the failed pair has no geometry)
+    assert tracker.recorded == [a.lstrip("/"), "pairs/b"]
+
+    # the scalars of every pair sit on the `pair` timeline, at the pair indices
+    from rerun.chunk import RrdReader
+
+    chunks = [c for c in RrdReader(rrd).stream().to_chunks() if c.entity_path == "/metrics/time_ms/graph"]
+    assert all("pair" in c.timeline_names for c in chunks)
+    seq = sorted(v for c in chunks for v in c.to_record_batch().column("pair").to_pylist())
+    assert seq == [0, 1, 3]
+    # clouds are capped at max_points, line colours follow the labels
+    lines = [
+        c for c in RrdReader(rrd).stream().to_chunks() if c.entity_path == f"{a}/matches/correspondences"
+    ]
+    colors = lines[0].to_record_batch().column("LineStrips3D:colors").to_pylist()[0]
+    assert len(colors) == 40
+    green = (40 << 24) | (200 << 16) | (60 << 8) | 255
+    assert colors[:20] == [green] * 20 and green not in colors[20:]
+
+
+def test_rerun_per_pair_files(tmp_path, strict_rerun):
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+
+    outcomes = [make_outcome(i, f"pair/{i}") for i in range(3)]
+    tracker = RerunTracker(per="pair", max_pairs=2, max_points=50)
+    run_tracker(tracker, tmp_path, outcomes)
+    files = sorted((tmp_path / "rerun").glob("*.rrd"))
+    assert [f.name for f in files] == ["pair_0.rrd", "pair_1.rrd"]
+    got = _rrd_contents(files[1])
+    root = "/pairs/" + strict_rerun.escape_entity_path_part("pair/1")
+    assert "Points3D" in got[f"{root}/registration/gt/source"]
+    assert not any(e.startswith("/pairs/" + strict_rerun.escape_entity_path_part("pair/0")) for e in got)
+
+
+def test_rerun_cli_verify(tmp_path, strict_rerun):
+    """`rerun rrd verify` (the CLI that ships with the SDK) accepts the file."""
+    import shutil
+    import subprocess
+
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+
+    exe = shutil.which("rerun")
+    if exe is None:
+        pytest.skip("rerun CLI not on PATH")
+    run_tracker(RerunTracker(max_pairs=1, max_points=50), tmp_path, [make_outcome(0, "a")])
+    cmd = [exe, "rrd", "verify", str(tmp_path / "recording.rrd")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+
+
+# -- wandb ------------------------------------------------------------------------------------------------
+def test_wandb_offline_run(tmp_path, monkeypatch):
+    pytest.importorskip("wandb")
+    from fastmac_exp.trackers.wandb_tracker import WandbTracker, find_offline_runs, read_offline_run
+
+    monkeypatch.setenv("WANDB_MODE", "offline")  # belt and braces: never the network in tests
+    outcomes = [make_outcome(0, "a"), make_outcome(1, "b"), make_outcome(2, "c", failed=True)]
+    tracker = WandbTracker(group="g1", name="job-1", tags=["test"])
+    run_tracker(tracker, tmp_path, outcomes)
+    runs = find_offline_runs(tmp_path)
+    assert len(runs) == 1 and runs[0].name.startswith("offline-run-")
+    data = read_offline_run(runs[0])
+    assert data["run"]["project"] == "fastmac-exp"
+    assert data["run"]["group"] == "g1" and data["run"]["name"] == "job-1" and data["run"]["tags"] == ["test"]
+    assert data["config"]["ratio"] == 0.5 and data["config"]["sampler"] == {"name": "highpass"}
+    assert data["config"]["run_dir"] == str(tmp_path)
+    steps = [h for h in data["history"] if "pair/index" in h]
+    assert [h["pair/index"] for h in steps] == [0, 1, 2]
+    assert steps[0]["pair/re_deg"] == pytest.approx(0.1) and steps[1]["pair/te_cm"] == pytest.approx(2.0)
+    assert steps[0]["time/graph_ms"] == pytest.approx(1.0) and steps[1]["time/describe_ms"] == pytest.approx(
+        11
+    )
+    assert [h["running/RR"] for h in steps] == pytest.approx([1.0, 1.0, 2 / 3])
+    assert steps[2]["pair/failed"] == 1 and "pair/re_deg" not in steps[2]
+    table_step = [h for h in data["history"] if "results/_type" in h]
+    assert (
+        table_step and table_step[0]["results/_type"] == "table-file" and table_step[0]["results/nrows"] == 3
+    )
+    assert data["summary"]["RR"] == pytest.approx(2 / 3) and data["summary"]["sampler"] == "highpass"
+    assert data["exit_code"] == 0
+    table_files = list(runs[0].glob("files/media/table/results_*.table.json"))
+    assert len(table_files) == 1
+
+
+def test_wandb_groups_hydra_multirun(tmp_path, monkeypatch):
+    pytest.importorskip("wandb")
+    from hydra import compose, initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import open_dict
+
+    from fastmac_exp.trackers.wandb_tracker import (
+        WandbTracker,
+        find_offline_runs,
+        hydra_context,
+        read_offline_run,
+    )
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["ratio=0.1"], return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.mode = RunMode.MULTIRUN
+        cfg.hydra.sweep.dir = str(tmp_path / "sweep-2024")
+        cfg.hydra.job.override_dirname = "ratio=0.1"
+        cfg.hydra.job.num = 0
+    HydraConfig.instance().set_config(cfg)
+    try:
+        ctx = hydra_context()
+        assert ctx["multirun"] and ctx["override_dirname"] == "ratio=0.1"
+        run_tracker(WandbTracker(), tmp_path / "job", [make_outcome(0, "a")])
+    finally:
+        HydraConfig.instance().cfg = None
+    data = read_offline_run(find_offline_runs(tmp_path / "job")[0])
+    assert data["run"]["group"] == "sweep-2024" and data["run"]["name"] == "ratio=0.1"
+    assert data["config"]["hydra"]["choices"]["sampler"] == "highpass"
+
+
+def test_wandb_missing_package_is_a_warning(monkeypatch, caplog, tmp_path):
+    import builtins
+
+    from fastmac_exp.trackers.wandb_tracker import WandbTracker
+
+    real_import = builtins.__import__
+
+    def fake_import(name, *args, **kwargs):
+        if name == "wandb" or name.startswith("wandb."):
+            raise ImportError("No module named 'wandb'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with caplog.at_level("WARNING"):
+        tracker = WandbTracker()
+    assert "wandb tracker disabled" in caplog.text
+    run_tracker(tracker, tmp_path, [make_outcome(0, "a")])  # a no-op, no exception
+    assert not (tmp_path / "wandb").exists()
+
+
+def test_default_tracker_config_instantiates():
+    """conf/tracker/default.yaml: wandb offline + rerun per run, built the way the experiment builds them."""
+    from hydra import compose, initialize_config_dir
+
+    from fastmac_exp.experiment import _make_trackers
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config")
+        none = compose("config", overrides=["tracker=none"])
+    trackers = {t.name: t for t in _make_trackers(cfg)}
+    assert set(trackers) == {"wandb", "rerun"}
+    assert trackers["wandb"].mode == "offline"
+    assert trackers["rerun"].per == "run" and trackers["rerun"].max_pairs == 4
+    assert _make_trackers(none) == []
+
+
+def test_helpers():
+    from fastmac_exp.trackers.rerun_tracker import downsample, label_colors, safe_name
+    from fastmac_exp.trackers.wandb_tracker import _number
+
+    pts = np.arange(30.0).reshape(10, 3)
+    assert len(downsample(pts, 4)) == 4 and downsample(pts, 100) is pts
+    assert label_colors(None, 2).tolist() == [[150, 150, 150]] * 2
+    assert safe_name("scene/a b") == "scene_a_b"
+    assert _number(True) == 1 and _number(float("nan")) is None and _number(pd.NA) is None
+    assert _number(np.float32(2.5)) == 2.5 and math.isclose(_number(3), 3)
