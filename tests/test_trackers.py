@@ -202,7 +202,7 @@ def test_wandb_offline_run(tmp_path, monkeypatch):
     run_tracker(tracker, tmp_path, outcomes)
     runs = find_offline_runs(tmp_path)
     assert len(runs) == 1 and runs[0].name.startswith("offline-run-")
-    data = read_offline_run(runs[0])
+    data = read_offline_run(runs[0], wait_s=10)
     assert data["run"]["project"] == "fastmac-exp"
     assert data["run"]["group"] == "g1" and data["run"]["name"] == "job-1" and data["run"]["tags"] == ["test"]
     assert data["config"]["ratio"] == 0.5 and data["config"]["sampler"] == {"name": "highpass"}
@@ -254,7 +254,7 @@ def test_wandb_groups_hydra_multirun(tmp_path, monkeypatch):
         run_tracker(WandbTracker(), tmp_path / "job", [make_outcome(0, "a")])
     finally:
         HydraConfig.instance().cfg = None
-    data = read_offline_run(find_offline_runs(tmp_path / "job")[0])
+    data = read_offline_run(find_offline_runs(tmp_path / "job")[0], wait_s=10)
     assert data["run"]["group"] == "sweep-2024" and data["run"]["name"] == "ratio=0.1"
     assert data["config"]["hydra"]["choices"]["sampler"] == "highpass"
 

@@ -252,13 +252,27 @@ def find_offline_runs(run_dir: str | Path) -> list[Path]:
     return sorted(Path(run_dir).glob("wandb/offline-run-*"))
 
 
-def read_offline_run(path: str | Path) -> dict[str, Any]:
+def read_offline_run(path: str | Path, wait_s: float = 0.0) -> dict[str, Any]:
     """Decode an offline run's transaction log (`run-*.wandb`) with wandb's own record protobufs.
 
     `path` is the offline-run directory or the .wandb file. Returns {"run": {project, group, name,
     tags}, "config": {...}, "history": [step dicts], "summary": {...}, "exit_code": int | None}; values
     are JSON-decoded. This is the file `wandb sync` uploads, so it shows what the server will get.
+
+    wandb's service writes the log asynchronously: `run.finish()` returns before the last records reach
+    the disk (they do before the process exits). `wait_s` > 0 polls until the exit record is there.
     """
+    import time
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        result = _read_offline_run(path)
+        if result["exit_code"] is not None or time.monotonic() >= deadline:
+            return result
+        time.sleep(0.02)
+
+
+def _read_offline_run(path: str | Path) -> dict[str, Any]:
     import json
     import struct
 
@@ -271,6 +285,8 @@ def read_offline_run(path: str | Path) -> dict[str, Any]:
             raise FileNotFoundError(f"no run-*.wandb in {path}")
         path = files[0]
     data = path.read_bytes()
+    if len(data) < 7:  # created, nothing flushed yet
+        return {"run": {}, "config": {}, "history": [], "summary": {}, "exit_code": None}
     ident, magic, version = struct.unpack("<4sHB", data[:7])
     if ident != b":W&B" or magic != 0xBEE1:
         raise ValueError(f"{path} is not a wandb transaction log")

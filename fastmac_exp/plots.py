@@ -1,0 +1,218 @@
+"""Plots for the report (matplotlib, Agg backend, PNG), drawn from `report.aggregate`'s table.
+
+- sampling.png: RR / RE / TE against the sampling ratio, one line per method (sampler, and backend or
+  protocol where those vary), one row of three panels per dataset x descriptor (the paper's
+  sampling-strategy figures); log-scaled ratio axis running from 1 down to 0.01.
+- time_profile.png: median time per stage stacked against the ratio, one panel per method, one row per
+  dataset x descriptor (the paper's time-profile figure).
+- rr_vs_time.png: RR against median total time, one point per method and ratio (labelled sampler@ratio),
+  one panel per dataset x descriptor.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
+
+RATIO_TICKS = (1.0, 0.5, 0.2, 0.1, 0.05, 0.01)
+PROFILE_STAGES = ("sampling", "graph", "cliques", "selection", "pose")
+STAGE_NAMES = {"sampling": "Sampling", "graph": "GC", "cliques": "MCS", "selection": "NCS", "pose": "PE"}
+STAGE_COLORS = {"sampling": "#4c72b0", "graph": "#dd8452", "cliques": "#55a868", "selection": "#c44e52",
+                "pose": "#8172b3"}  # fmt: skip
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
+def _panels(agg: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
+    """(title, rows) per dataset x descriptor."""
+    keys = [k for k in ("dataset", "descriptor") if k in agg]
+    if not keys:
+        return [("", agg)]
+    out = []
+    for key, g in agg.groupby(keys, sort=False):
+        key = key if isinstance(key, tuple) else (key,)
+        out.append((" / ".join(str(k) for k in key), g))
+    return out
+
+
+def _method_keys(agg: pd.DataFrame) -> list[str]:
+    """The columns that tell methods apart: the sampler, plus backend / protocol where they vary."""
+    keys = [k for k in ("sampler",) if k in agg]
+    keys += [k for k in ("backend", "protocol") if k in agg and agg[k].nunique(dropna=False) > 1]
+    return keys
+
+
+def _methods(g: pd.DataFrame, keys: list[str]) -> list[tuple[str, pd.DataFrame]]:
+    if not keys:
+        return [("all", g)]
+    out = []
+    for key, m in g.groupby(keys, sort=True):
+        key = key if isinstance(key, tuple) else (key,)
+        out.append((" / ".join(str(k) for k in key), m.sort_values("ratio", ascending=False)))
+    return out
+
+
+def _color_map(labels: list[str]) -> dict[str, tuple]:
+    cmap = plt.get_cmap("tab10")
+    return {lab: cmap(i % 10) for i, lab in enumerate(sorted(set(labels)))}
+
+
+def _ratio_axis(ax, ratios: np.ndarray) -> None:
+    ratios = np.asarray([r for r in ratios if np.isfinite(r) and r > 0], float)
+    ticks = sorted(set(RATIO_TICKS) | set(np.round(ratios, 6).tolist()), reverse=True)
+    lo = min(min(ticks), *(ratios if len(ratios) else [1.0]))
+    ax.set_xscale("log")
+    ax.set_xticks(ticks)
+    ax.set_xticklabels([f"{t:g}" for t in ticks])
+    ax.minorticks_off()
+    ax.set_xlim(1.25, lo / 1.25)  # inverted: from all correspondences down to the sparsest sample
+    ax.set_xlabel("sampling ratio")
+    ax.grid(True, which="major", alpha=0.3)
+
+
+def plot_sampling(agg: pd.DataFrame, path: Path) -> Path | None:
+    """RR / RE / TE against ratio per method; one row of three panels per dataset x descriptor."""
+    if agg.empty or "ratio" not in agg:
+        return None
+    panels = _panels(agg)
+    mkeys = _method_keys(agg)
+    colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
+    fig, axes = plt.subplots(len(panels), 3, figsize=(14, 3.8 * len(panels)), squeeze=False)
+    metrics = (("RR", "RR (%)"), ("RE_deg", "RE (deg)"), ("TE_cm", "TE (cm)"))
+    for row, (title, g) in enumerate(panels):
+        for col, (metric, label) in enumerate(metrics):
+            ax = axes[row, col]
+            for i, (lab, m) in enumerate(_methods(g, mkeys)):
+                x, y = m["ratio"].to_numpy(float), m[metric].to_numpy(float)
+                ax.plot(x, y, marker=MARKERS[i % len(MARKERS)], color=colors[lab], label=lab, lw=1.8, ms=6)
+                if metric == "RR" and "RR_seed_std" in m and m["RR_seed_std"].notna().any():
+                    mu, sd = m["RR_seed_mean"].to_numpy(float), m["RR_seed_std"].to_numpy(float)
+                    ax.fill_between(x, mu - sd, mu + sd, color=colors[lab], alpha=0.15, lw=0)
+            _ratio_axis(ax, g["ratio"].to_numpy(float))
+            ax.set_ylabel(label)
+            if metric == "RR":
+                ax.set_ylim(-3, 103)
+            else:
+                ax.set_ylim(bottom=0)
+            ax.set_title(f"{title}: {label}" if title else label, fontsize=10)
+        axes[row, 0].legend(fontsize=8, loc="best")
+    fig.suptitle("Sampling strategy: accuracy against the sampling ratio", fontsize=12)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_time_profile(agg: pd.DataFrame, path: Path) -> Path | None:
+    """Stacked median stage times against ratio; one panel per method, one row per dataset x descriptor."""
+    stages = [s for s in PROFILE_STAGES if f"t_{s}_ms" in agg and agg[f"t_{s}_ms"].notna().any()]
+    if agg.empty or not stages or "ratio" not in agg:
+        return None
+    panels = _panels(agg)
+    mkeys = _method_keys(agg)
+    ncols = max(len(_methods(g, mkeys)) for _, g in panels)
+    fig, axes = plt.subplots(
+        len(panels), ncols, figsize=(max(4.2 * ncols, 6), 3.8 * len(panels)), squeeze=False, sharey="row"
+    )
+    for row, (title, g) in enumerate(panels):
+        methods = _methods(g, mkeys)
+        for col in range(ncols):
+            ax = axes[row, col]
+            if col >= len(methods):
+                ax.set_visible(False)
+                continue
+            lab, m = methods[col]
+            x = np.arange(len(m))
+            bottom = np.zeros(len(m))
+            for s in stages:
+                v = np.nan_to_num(m[f"t_{s}_ms"].to_numpy(float))
+                ax.bar(x, v, bottom=bottom, color=STAGE_COLORS[s], label=STAGE_NAMES[s], width=0.7)
+                bottom += v
+            if "t_total_ms" in m:
+                tot = m["t_total_ms"].to_numpy(float)
+                ax.scatter(x, tot, marker="_", s=300, color="k", zorder=3, label="median total")
+                for xi, ti in zip(x, tot, strict=True):
+                    if math.isfinite(ti):
+                        ax.annotate(f"{ti:.3g}", (xi, ti), textcoords="offset points", xytext=(0, 4),
+                                    ha="center", fontsize=7)  # fmt: skip
+            ax.set_xticks(x)
+            ax.set_xticklabels([f"{r:g}" for r in m["ratio"]])
+            ax.set_xlabel("sampling ratio")
+            ax.set_title(f"{title}: {lab}" if title else lab, fontsize=10)
+            ax.grid(True, axis="y", alpha=0.3)
+        axes[row, 0].set_ylabel("median time (ms)")
+    legend: dict = {}
+    for ax in axes.flat:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            legend.setdefault(lab, h)
+    handles, labels = list(legend.values()), list(legend.keys())
+    fig.legend(handles, labels, loc="upper right", fontsize=8, ncols=len(labels))
+    fig.suptitle("Time profile: median time per stage", fontsize=12, x=0.3)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
+    """RR against median total time; one point per method and ratio, one panel per dataset x descriptor."""
+    if agg.empty or "t_total_ms" not in agg or not agg["t_total_ms"].notna().any():
+        return None
+    panels = _panels(agg)
+    mkeys = _method_keys(agg)
+    colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
+    backends = sorted(agg["backend"].astype(str).unique()) if "backend" in agg else []
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 4.8), squeeze=False)
+    for col, (title, g) in enumerate(panels):
+        ax = axes[0, col]
+        for lab, m in _methods(g, mkeys):
+            m = m[m["t_total_ms"].notna()]
+            if m.empty:
+                continue
+            ax.plot(m["t_total_ms"], m["RR"], color=colors[lab], lw=1, alpha=0.5)
+            for _, r in m.iterrows():
+                b = backends.index(str(r["backend"])) if backends else 0
+                marker = MARKERS[b % len(MARKERS)]
+                ax.scatter(r["t_total_ms"], r["RR"], color=colors[lab], marker=marker, s=45, zorder=3)
+                name = f"{r.get('sampler', lab)}@{r['ratio']:g}" if "ratio" in r else lab
+                ax.annotate(name, (r["t_total_ms"], r["RR"]), textcoords="offset points", xytext=(4, 3),
+                            fontsize=7)  # fmt: skip
+            ax.plot([], [], color=colors[lab], marker="o", ls="-", label=lab)
+        for b, name in enumerate(backends):
+            ax.scatter([], [], color="grey", marker=MARKERS[b % len(MARKERS)], label=f"backend {name}")
+        ax.set_xscale("log")
+        fmt = FuncFormatter(lambda v, _: f"{v:g}")
+        ax.xaxis.set_major_formatter(fmt)
+        ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:.1g}"[0] in "25" else ""))
+        ax.margins(x=0.12)
+        ax.set_xlabel("median total time per pair (ms, sampling + MAC)")
+        ax.set_ylabel("RR (%)")
+        ax.set_ylim(-3, 103)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.set_title(title or "RR against time", fontsize=10)
+        ax.legend(fontsize=8, loc="best")
+    fig.suptitle("Registration recall against time", fontsize=12)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_all(agg: pd.DataFrame, out_dir: str | Path) -> list[Path]:
+    """Every plot that the aggregate has data for; returns the PNG paths written."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [
+        plot_sampling(agg, out_dir / "sampling.png"),
+        plot_time_profile(agg, out_dir / "time_profile.png"),
+        plot_rr_vs_time(agg, out_dir / "rr_vs_time.png"),
+    ]
+    return [p for p in written if p is not None]
