@@ -6,7 +6,6 @@
 #include <cstring>
 
 #include "mac_core.hpp"
-#include "omp_compat.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -217,11 +216,12 @@ NB_MODULE(_mac_core, m) {
           "time_limit_s"_a = 0.0, "num_threads"_a = 0, "MAC end to end (spec 2-5).");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
-    m.def("openmp_threads", []() { return fastmac::resolve_threads(0); },
-          "Threads OpenMP uses by default (1 when built without OpenMP).");
-#ifdef _OPENMP
-    m.attr("has_openmp") = true;
+    m.def("default_threads", []() { return fastmac::resolve_threads(0); },
+          "Threads used when num_threads=0 (problems with fewer than serial_below rows run on one).");
+    m.attr("serial_below") = fastmac::kSerialBelow;
+#ifdef FASTMAC_OPENMP
+    m.attr("parallel_backend") = "openmp";
 #else
-    m.attr("has_openmp") = false;
+    m.attr("parallel_backend") = "threads";
 #endif
 }

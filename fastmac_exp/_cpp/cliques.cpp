@@ -9,7 +9,7 @@
 #include <numeric>
 
 #include "mac_core.hpp"
-#include "omp_compat.hpp"
+#include "parallel.hpp"
 
 namespace fastmac {
 
@@ -52,6 +52,14 @@ AdjGraph adj_from_edges(int64_t n, const int64_t *ei, const int64_t *ej, int64_t
     g.col.resize(out);
     g.ptr.swap(newptr);
     return g;
+}
+
+double adj_lookup(const AdjGraph &g, const std::vector<double> &vals, int32_t a, int32_t b) {
+    const int32_t *first = g.col.data() + g.ptr[a];
+    const int32_t *last = g.col.data() + g.ptr[a + 1];
+    const int32_t *it = std::lower_bound(first, last, b);
+    if (it == last || *it != b) return 0.0;
+    return vals[it - g.col.data()];
 }
 
 namespace {
@@ -264,7 +272,7 @@ CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &ca
                            int nthreads) {
     cap_hit.clear();
     if (min_size < 1) min_size = 1;
-    nthreads = resolve_threads(nthreads);
+    nthreads = resolve_threads(nthreads, g.n);
     // With a count cap, run serially so that the partial list is reproducible.
     if (caps.max_cliques > 0) nthreads = 1;
     const int64_t n = g.n;
@@ -282,16 +290,15 @@ CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &ca
     }
 
     std::vector<CliqueList> parts(nthreads);
-#pragma omp parallel num_threads(nthreads)
-    {
+    DynamicRange roots(0, n, 4);
+    parallel_region(nthreads, [&](int tid) {
         Worker wk(g, min_size, sh);
-#pragma omp for schedule(dynamic, 1)
-        for (int64_t i = 0; i < n; ++i) {
-            if (sh.stop.load(std::memory_order_relaxed)) continue;
-            wk.run_root(order[i], rank);
-        }
-        parts[omp_get_thread_num()] = std::move(wk.out);
-    }
+        int64_t lo, hi;
+        while (!sh.stop.load(std::memory_order_relaxed) && roots.next(lo, hi))
+            for (int64_t i = lo; i < hi && !sh.stop.load(std::memory_order_relaxed); ++i)
+                wk.run_root(order[i], rank);
+        parts[tid] = std::move(wk.out);
+    });
 
     if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);
     if (sh.why.load() == 2) {

@@ -3,19 +3,34 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <functional>
 
 #include "mac_core.hpp"
-#include "omp_compat.hpp"
+#include "parallel.hpp"
 
 namespace fastmac {
 
 namespace {
 
+#ifdef FASTMAC_THREAD_CPU_CLOCK
+// Profiling builds (-DFASTMAC_THREAD_CPU_CLOCK): stage times in CPU time of the calling thread, which
+// a busy machine does not inflate. Meaningful with num_threads=1 only.
+struct Clock {
+    using time_point = double;
+    static double now() {
+        timespec ts;
+        clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+        return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
+    }
+};
+inline double ms_since(double t0) { return Clock::now() - t0; }
+#else
 using Clock = std::chrono::steady_clock;
 inline double ms_since(Clock::time_point t0) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
+#endif
 
 // The reference code's Otsu threshold on the clustering coefficients, quirks included (spec 2.4, 9.7).
 double otsu(const std::vector<double> &cc) {
@@ -57,7 +72,7 @@ double otsu(const std::vector<double> &cc) {
 }  // namespace
 
 Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) {
-    nthreads = resolve_threads(nthreads);
+    nthreads = resolve_threads(nthreads, W.n);
     const int64_t n = W.n;
     const int64_t *ptr = W.ptr.data();
     const int32_t *col = W.col.data();
@@ -66,13 +81,13 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
     std::vector<double> C(G.size());
     for (size_t p = 0; p < G.size(); ++p) C[p] = G[p] != 0.0 ? std::cbrt(G[p]) : 0.0;
     std::vector<std::vector<double>> tri_t(nthreads);
-#pragma omp parallel num_threads(nthreads)
-    {
+    DynamicRange rows(0, n, 8);
+    parallel_region(nthreads, [&](int tid) {
         std::vector<double> dense(n, 0.0);
-        std::vector<double> &tri = tri_t[omp_get_thread_num()];
+        std::vector<double> &tri = tri_t[tid];
         tri.assign(n, 0.0);
-#pragma omp for schedule(dynamic, 8)
-        for (int64_t i = 0; i < n; ++i) {
+        int64_t lo, hi;
+        while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
             for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = C[p];
             for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) {
                 if (C[p] == 0.0) continue;
@@ -89,7 +104,7 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
             }
             for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = 0.0;
         }
-    }
+    });
     Clustering out;
     out.cc.assign(n, 0.0);
     double tri_sum = 0.0, pair_sum = 0.0, cc_sum = 0.0;
@@ -113,7 +128,7 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
 }
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads) {
-    nthreads = resolve_threads(nthreads);
+    nthreads = resolve_threads(nthreads, n);
     if (n < 3) throw RegistrationFailed("need at least 3 correspondences, got " + std::to_string(n));
     if (!(p.inlier_threshold > 0)) throw std::invalid_argument("inlier_threshold must be positive");
     if (n > INT32_MAX) throw std::invalid_argument("too many correspondences");
@@ -157,12 +172,20 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
             res.reduced = true;
         }
     }
+    // The clique graph: G's support (reduced or not), with G's values alongside for the clique weights
+    // (reduction removes edges but never changes the values of those it keeps).
     AdjGraph cg;
+    std::vector<double> cgw;
     cg.n = n;
     cg.ptr.assign(n + 1, 0);
+    cg.col.reserve(2 * res.n_sog_edges);
+    cgw.reserve(2 * res.n_sog_edges);
     for (int64_t i = 0; i < n; ++i) {
         for (int64_t q = W.ptr[i]; q < W.ptr[i + 1]; ++q) {
-            if (G[q] > 0.0 && (good.empty() || (good[i] && good[W.col[q]]))) cg.col.push_back(W.col[q]);
+            if (G[q] > 0.0 && (good.empty() || (good[i] && good[W.col[q]]))) {
+                cg.col.push_back(W.col[q]);
+                cgw.push_back(G[q]);
+            }
         }
         cg.ptr[i + 1] = (int64_t)cg.col.size();
     }
@@ -170,25 +193,25 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     caps.max_cliques = p.max_cliques;
     caps.time_limit_s = p.time_limit_s;
     CliqueList cliques = maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads);
-    cg = AdjGraph();  // free it before the next stages
     res.t_cliques = ms_since(t0);
     res.n_cliques = (int64_t)cliques.size();
     if (cliques.size() == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));
 
     // ---- node-guided selection (spec 4) with the un-reduced G
+    W = Csr();  // the clique graph carries the values still needed; free the rest
+    std::vector<double>().swap(G);
     t0 = Clock::now();
     const int64_t nc = (int64_t)cliques.size();
     std::vector<double> cw(nc);
-#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 256)
-    for (int64_t c = 0; c < nc; ++c) {
+    parallel_for(0, nc, nthreads, 1024, [&](int64_t c, int) {
         const int32_t *m = cliques.begin(c);
         const size_t k = cliques.len(c);
         double s = 0.0;
         for (size_t a = 0; a < k; ++a)
-            for (size_t b = a + 1; b < k; ++b) s += csr_lookup(W, G, m[a], m[b]);
+            for (size_t b = a + 1; b < k; ++b) s += adj_lookup(cg, cgw, m[a], m[b]);
         cw[c] = s;
-    }
+    });
     std::vector<double> best_w(n, 0.0);
     std::vector<int64_t> owner(n, -1);
     for (int64_t c = 0; c < nc; ++c) {
@@ -218,27 +241,30 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     const int64_t nh = (int64_t)selected.size();
     double best_score = 0.0;
     int64_t best_h = -1;
-#pragma omp parallel num_threads(nthreads)
-    {
-        double my_score = 0.0;
-        int64_t my_h = -1;
-#pragma omp for schedule(dynamic, 16)
-        for (int64_t h = 0; h < nh; ++h) {
+    const Scorer scorer(src, tgt, n, tau);
+    // Per thread: the best (score, -index); chunks are handed out in increasing order, so within a
+    // thread a strict > keeps the earliest of equal scores. Reduced the same way: deterministic.
+    std::vector<double> t_score(nthreads, 0.0);
+    std::vector<int64_t> t_h(nthreads, -1);
+    DynamicRange hyps(0, nh, 16);
+    parallel_region(nthreads, [&](int tid) {
+        std::vector<uint8_t> scratch;
+        int64_t lo, hi;
+        while (hyps.next(lo, hi)) for (int64_t h = lo; h < hi; ++h) {
             const int64_t c = selected[h];
             const Pose T = kabsch(src, tgt, cliques.begin(c), (int64_t)cliques.len(c), nullptr);
-            const double s = mae_score(T, src, tgt, n, tau, nullptr);
-            if (s > my_score || (s == my_score && my_h >= 0 && h < my_h)) {
-                my_score = s;
-                my_h = h;
+            const double s = scorer.score(T, scratch);
+            if (s > t_score[tid]) {
+                t_score[tid] = s;
+                t_h[tid] = h;
             }
         }
-#pragma omp critical
-        {
-            if (my_h >= 0 &&
-                (best_h < 0 || my_score > best_score || (my_score == best_score && my_h < best_h))) {
-                best_score = my_score;
-                best_h = my_h;
-            }
+    });
+    for (int t = 0; t < nthreads; ++t) {
+        if (t_h[t] < 0) continue;
+        if (best_h < 0 || t_score[t] > best_score || (t_score[t] == best_score && t_h[t] < best_h)) {
+            best_score = t_score[t];
+            best_h = t_h[t];
         }
     }
     if (best_h < 0 || !(best_score > 0.0)) throw RegistrationFailed("no hypothesis has a positive score");

@@ -29,7 +29,11 @@ struct RegistrationFailed : std::runtime_error {
 Kernel parse_kernel(const std::string &name);  // throws std::invalid_argument
 void check_params(const GraphParams &gp);       // throws std::invalid_argument
 
-int resolve_threads(int num_threads);  // 0 -> OpenMP default; 1 without OpenMP
+// Threads to use: num_threads > 0 is taken as given; 0 means automatic: OpenMP's default, but one
+// thread for small problems (n < kSerialBelow), where starting threads costs more than it saves.
+constexpr int64_t kSerialBelow = 1500;
+int resolve_threads(int num_threads, int64_t n = -1);
+int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
 
 // ---------------------------------------------------------------------------------------------
 // Graphs
@@ -73,6 +77,9 @@ struct AdjGraph {
     std::vector<int32_t> col;
 };
 
+// vals[position of (a, b)] for a parallel array of values; 0 when (a, b) is not an edge.
+double adj_lookup(const AdjGraph &g, const std::vector<double> &vals, int32_t a, int32_t b);
+
 // Builds an AdjGraph from an arbitrary edge list (either direction, duplicates, self-loops ignored).
 AdjGraph adj_from_edges(int64_t n, const int64_t *i, const int64_t *j, int64_t m);
 
@@ -111,6 +118,21 @@ Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m,
 
 // MAE score (spec 5.2) over all n correspondences; e (optional, size n) receives the residuals.
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e);
+
+// The same score, fast: residuals are screened in float32 (centred coordinates, a conservative
+// rounding margin) and only the rows that can be inliers are evaluated exactly as mae_score does,
+// in the same order, so the result equals mae_score's bit for bit.
+class Scorer {
+   public:
+    Scorer(const double *src, const double *tgt, int64_t n, double tau);
+    double score(const Pose &T, std::vector<uint8_t> &scratch) const;
+
+   private:
+    const double *src_, *tgt_;
+    int64_t n_;
+    double tau_, rp_ = 0, rq_ = 0, cp_[3] = {0, 0, 0}, cq_[3] = {0, 0, 0};
+    std::vector<float> px_, py_, pz_, qx_, qy_, qz_;
+};
 
 // ---------------------------------------------------------------------------------------------
 // MAC

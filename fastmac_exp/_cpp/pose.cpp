@@ -2,6 +2,7 @@
 // hypothesis score (spec 5.2).
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 
 #include "mac_core.hpp"
 
@@ -143,6 +144,88 @@ double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n,
         const double err = std::sqrt(x * x + y * y + z * z);
         if (e) e[i] = err;
         if (err < tau) score += (tau - err) / tau;
+    }
+    return score;
+}
+
+namespace {
+
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+__attribute__((target_clones("avx2", "default")))
+#endif
+void screen_residuals(const float *__restrict px, const float *__restrict py, const float *__restrict pz,
+                      const float *__restrict qx, const float *__restrict qy, const float *__restrict qz,
+                      const float *__restrict R, const float *__restrict t, float lim2, int64_t n,
+                      uint8_t *__restrict flag) {
+    const float r0 = R[0], r1 = R[1], r2 = R[2], r3 = R[3], r4 = R[4], r5 = R[5], r6 = R[6], r7 = R[7],
+                r8 = R[8], t0 = t[0], t1 = t[1], t2 = t[2];
+    for (int64_t k = 0; k < n; ++k) {
+        const float x = r0 * px[k] + r1 * py[k] + r2 * pz[k] + t0 - qx[k];
+        const float y = r3 * px[k] + r4 * py[k] + r5 * pz[k] + t1 - qy[k];
+        const float z = r6 * px[k] + r7 * py[k] + r8 * pz[k] + t2 - qz[k];
+        flag[k] = (uint8_t)(x * x + y * y + z * z <= lim2);
+    }
+}
+
+}  // namespace
+
+Scorer::Scorer(const double *src, const double *tgt, int64_t n, double tau)
+    : src_(src), tgt_(tgt), n_(n), tau_(tau), px_(n), py_(n), pz_(n), qx_(n), qy_(n), qz_(n) {
+    for (int64_t i = 0; i < n; ++i)
+        for (int r = 0; r < 3; ++r) {
+            cp_[r] += src[3 * i + r];
+            cq_[r] += tgt[3 * i + r];
+        }
+    for (int r = 0; r < 3; ++r) {
+        cp_[r] /= (double)std::max<int64_t>(n, 1);
+        cq_[r] /= (double)std::max<int64_t>(n, 1);
+    }
+    for (int64_t i = 0; i < n; ++i) {
+        const double a[3] = {src[3 * i] - cp_[0], src[3 * i + 1] - cp_[1], src[3 * i + 2] - cp_[2]};
+        const double b[3] = {tgt[3 * i] - cq_[0], tgt[3 * i + 1] - cq_[1], tgt[3 * i + 2] - cq_[2]};
+        px_[i] = (float)a[0];
+        py_[i] = (float)a[1];
+        pz_[i] = (float)a[2];
+        qx_[i] = (float)b[0];
+        qy_[i] = (float)b[1];
+        qz_[i] = (float)b[2];
+        rp_ = std::max(rp_, norm3(a));
+        rq_ = std::max(rq_, norm3(b));
+    }
+}
+
+double Scorer::score(const Pose &T, std::vector<uint8_t> &flag) const {
+    // R p + t - q = R p' + t' - q' with p' = p - cp, q' = q - cq and t' = R cp + t - cq.
+    float Rf[9], tf[3];
+    double tc[3];
+    for (int r = 0; r < 3; ++r) {
+        tc[r] = T.R[3 * r] * cp_[0] + T.R[3 * r + 1] * cp_[1] + T.R[3 * r + 2] * cp_[2] + T.t[r] - cq_[r];
+        tf[r] = (float)tc[r];
+    }
+    for (int k = 0; k < 9; ++k) Rf[k] = (float)T.R[k];
+    // Float rounding of the inputs, the products and the sums stays far below 1e-5 of the magnitudes.
+    const double lim = tau_ + 1e-5 * (rp_ + rq_ + norm3(tc)) + 1e-12;
+    const float lim2 = (float)(lim * lim);
+    flag.resize(n_ + 8);
+    screen_residuals(px_.data(), py_.data(), pz_.data(), qx_.data(), qy_.data(), qz_.data(), Rf, tf, lim2, n_,
+                     flag.data());
+    std::memset(flag.data() + n_, 0, 8);
+    const double *R = T.R, *t = T.t;
+    const double tau = tau_;
+    double score = 0.0;
+    for (int64_t k8 = 0; k8 < n_; k8 += 8) {
+        uint64_t word;
+        std::memcpy(&word, flag.data() + k8, 8);
+        if (!word) continue;
+        for (int64_t i = k8; i < k8 + 8 && i < n_; ++i) {
+            if (!flag[i]) continue;
+            const double *p = src_ + 3 * i, *q = tgt_ + 3 * i;
+            const double x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0] - q[0];
+            const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
+            const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
+            const double err = std::sqrt(x * x + y * y + z * z);
+            if (err < tau) score += (tau - err) / tau;
+        }
     }
     return score;
 }

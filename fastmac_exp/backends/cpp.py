@@ -7,6 +7,7 @@ same cliques and return the same pose up to floating-point rounding.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -15,13 +16,30 @@ from fastmac_exp.errors import BackendUnavailable, RegistrationFailed
 from fastmac_exp.params import GraphParams, MacParams
 from fastmac_exp.types import Correspondences, RegistrationResult
 
-try:  # the compiled extension; absent in a source checkout that was never built
-    from fastmac_exp import _mac_core as _core
-except ImportError as exc:  # pragma: no cover - depends on the build
-    _core = None
-    _IMPORT_ERROR: str = str(exc)
-else:
-    _IMPORT_ERROR = ""
+
+def _import_core() -> tuple[Any, str]:
+    """Import the extension with OpenMP's passive wait policy unless the user chose one.
+
+    libgomp reads OMP_WAIT_POLICY once, when it is loaded. Its default spins at every barrier for
+    milliseconds; on a small shared machine (or next to OpenBLAS's spinning threads) that turns a
+    1 ms MAC into 100+ ms. The variable is restored right after the import, so nothing else in the
+    process sees it. (If another library loaded libgomp first, e.g. torch, its setting stays.)
+    """
+    keys = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+    set_here = not any(k in os.environ for k in keys)
+    if set_here:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    try:
+        from fastmac_exp import _mac_core
+    except ImportError as exc:  # pragma: no cover - depends on the build
+        return None, str(exc)
+    finally:
+        if set_here:
+            os.environ.pop("OMP_WAIT_POLICY", None)
+    return _mac_core, ""
+
+
+_core, _IMPORT_ERROR = _import_core()
 
 BUILD_HINT = (
     "the C++ core fastmac_exp._mac_core is not built ({why}). Build it from the repository root with "
