@@ -53,7 +53,9 @@ def fpfh_features(
     )
     feat = o3d.pipelines.registration.compute_fpfh_feature(
         down,
-        o3d.geometry.KDTreeSearchParamHybrid(radius=feature_radius_factor * voxel, max_nn=int(feature_max_nn)),
+        o3d.geometry.KDTreeSearchParamHybrid(
+            radius=feature_radius_factor * voxel, max_nn=int(feature_max_nn)
+        ),
     )
     f = np.asarray(feat.data, dtype=np.float64).T.copy()
     if normalize:
@@ -113,7 +115,9 @@ class FPFHDescriptor:
         self.mutual = bool(mutual)
         self.max_correspondences = int(max_correspondences)
 
-    def features(self, points: np.ndarray, voxel: float, what: str = "cloud") -> tuple[np.ndarray, np.ndarray]:
+    def features(
+        self, points: np.ndarray, voxel: float, what: str = "cloud"
+    ) -> tuple[np.ndarray, np.ndarray]:
         return fpfh_features(
             points,
             voxel,
