@@ -40,6 +40,15 @@ nb::object pose_to_numpy(const fastmac::Pose &T) {
     return to_numpy(std::move(m), {4, 4});
 }
 
+nb::list clique_list(const fastmac::CliqueList &cl) {
+    nb::list out;
+    for (size_t c = 0; c < cl.size(); ++c) {
+        std::vector<int64_t> m(cl.begin(c), cl.begin(c) + cl.len(c));
+        out.append(to_numpy(std::move(m)));
+    }
+    return out;
+}
+
 int64_t check_pair(const Points &src, const Points &tgt) {
     if (src.shape(1) != 3 || tgt.shape(1) != 3)
         throw std::invalid_argument("src and tgt must have shape (N, 3)");
@@ -122,17 +131,12 @@ nb::tuple maximal_cliques(int64_t n, const Indices &i, const Indices &j, int min
         caps.time_limit_s = time_limit_s;
         cl = fastmac::maximal_cliques(g, min_size, caps, cap_hit, num_threads);
     }
-    nb::list out;
-    for (size_t c = 0; c < cl.size(); ++c) {
-        std::vector<int64_t> m(cl.begin(c), cl.begin(c) + cl.len(c));
-        out.append(to_numpy(std::move(m)));
-    }
-    return nb::make_tuple(out, cap_hit);
+    return nb::make_tuple(clique_list(cl), cap_hit);
 }
 
 nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
              double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
-             int64_t max_cliques, double time_limit_s, int num_threads) {
+             int64_t max_cliques, double time_limit_s, int num_threads, bool return_selected) {
     const int64_t n = check_pair(src, tgt);
     fastmac::MacParams p;
     p.graph = graph_params(kernel, alpha, tau, threshold);
@@ -142,6 +146,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     p.reduction = reduction;
     p.max_cliques = max_cliques;
     p.time_limit_s = time_limit_s;
+    p.return_selected = return_selected;
     if (min_clique_size < 3) throw std::invalid_argument("min_clique_size must be at least 3");
     fastmac::MacResult r;
     {
@@ -165,6 +170,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     t["selection"] = r.t_selection;
     t["pose"] = r.t_pose;
     d["timings"] = t;
+    if (return_selected) d["selected"] = clique_list(r.selected);
     return d;
 }
 
@@ -213,7 +219,8 @@ NB_MODULE(_mac_core, m) {
           "('' when none).");
     m.def("mac", &mac, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a, "inlier_threshold"_a,
           "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "max_cliques"_a = 0,
-          "time_limit_s"_a = 0.0, "num_threads"_a = 0, "MAC end to end (spec 2-5).");
+          "time_limit_s"_a = 0.0, "num_threads"_a = 0, "return_selected"_a = false,
+          "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order.");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },

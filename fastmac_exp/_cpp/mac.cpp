@@ -234,6 +234,11 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         }
     }
     res.n_selected = (int64_t)selected.size();
+    if (p.return_selected)
+        for (int64_t c : selected) {
+            res.selected.data.insert(res.selected.data.end(), cliques.begin(c), cliques.begin(c) + cliques.len(c));
+            res.selected.off.push_back((int64_t)res.selected.data.size());
+        }
     res.t_selection = ms_since(t0);
 
     // ---- hypotheses, scores, refinement (spec 5)

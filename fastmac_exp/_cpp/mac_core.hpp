@@ -145,6 +145,7 @@ struct MacParams {
     bool reduction = true;
     int64_t max_cliques = 0;
     double time_limit_s = 0.0;
+    bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
 };
 
 struct MacResult {
@@ -154,6 +155,7 @@ struct MacResult {
     int64_t n_cliques = 0, n_selected = 0, n_edges = 0, n_sog_edges = 0;
     bool reduced = false;
     std::string cap_hit;
+    CliqueList selected;  // only with MacParams::return_selected
     double t_graph = 0, t_cliques = 0, t_selection = 0, t_pose = 0;  // milliseconds
 };
 

@@ -1,0 +1,402 @@
+"""The C++ core (fastmac_exp._mac_core): exact against dense numpy, igraph and the Python backend."""
+
+from __future__ import annotations
+
+import time
+
+import igraph
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from fastmac_exp.backends import cpp
+from fastmac_exp.errors import BackendUnavailable, RegistrationFailed
+from fastmac_exp.params import GraphParams, MacParams
+from fastmac_exp.transforms import kabsch, random_rotation, rotation_error_deg
+from fastmac_exp.types import Correspondences
+from tests.conftest import make_correspondences
+
+if not cpp.available():
+    pytest.skip("the C++ core is not built (pip install --no-build-isolation -e .)", allow_module_level=True)
+
+core = cpp.core()
+
+
+# ---------------------------------------------------------------------------------------------------
+# helpers
+
+
+def clustered(n: int, ratio: float, noise: float, seed: int, extent: float = 3.0):
+    """Correspondences with a consistent inlier group and uniform outliers, plus the true pose."""
+    rng = np.random.default_rng(seed)
+    r = random_rotation(rng)
+    t = rng.uniform(-1, 1, 3)
+    src = rng.uniform(0, extent, (n, 3))
+    tgt = src @ r.T + t
+    k = int(round(n * ratio))
+    tgt[:k] += rng.normal(0, noise, (k, 3))
+    tgt[k:] = rng.uniform(0, extent, (n - k, 3)) @ r.T + t
+    perm = rng.permutation(n)
+    return np.ascontiguousarray(src[perm]), np.ascontiguousarray(tgt[perm]), r, t
+
+
+def dense_w(src, tgt, kernel, alpha, tau, thr):
+    dp = np.linalg.norm(src[:, None] - src[None], axis=2)
+    dq = np.linalg.norm(tgt[:, None] - tgt[None], axis=2)
+    d = np.abs(dp - dq)
+    s = np.exp(-(d**2) / (2.0 * alpha**2)) if kernel == "gaussian" else 1.0 - d**2 / tau**2
+    w = np.where(s >= thr, s, 0.0)
+    np.fill_diagonal(w, 0.0)
+    return w
+
+
+def dense_signals(w, self_loops):
+    a = w + np.eye(len(w)) if self_loops else w
+    sog = a * (a @ a)
+    s = sog.sum(axis=1)
+    f = (np.diag(s) - sog) @ s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        low = np.where(s > 0, s + (sog @ s) / np.where(s > 0, s, 1.0), 0.0)
+    return s, f, low
+
+
+def as_sets(cliques):
+    return {tuple(int(v) for v in c) for c in cliques}
+
+
+def is_canonical(cliques):
+    tuples = [tuple(int(v) for v in c) for c in cliques]
+    return all(list(t) == sorted(t) for t in tuples) and tuples == sorted(tuples)
+
+
+# ---------------------------------------------------------------------------------------------------
+# graphs
+
+
+@pytest.mark.parametrize(
+    "kernel,alpha,tau,thr", [("gaussian", 0.05, 0.1, 0.9), ("quadratic", 0.06, 0.1, 0.8)]
+)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_graph_edges_equal_dense_numpy(kernel, alpha, tau, thr, seed):
+    src, tgt, _, _ = clustered(120, 0.4, 0.01, seed)
+    e = core.graph_edges(src, tgt, kernel, alpha, tau, thr)
+    w = dense_w(src, tgt, kernel, alpha, tau, thr)
+    g = w * (w @ w)
+    i, j = np.nonzero(np.triu(w, 1))  # row-major, like the core's output
+    assert len(i) > 100 and (g > 0).sum() > 50  # a non-trivial graph
+    np.testing.assert_array_equal(e["i"], i)
+    np.testing.assert_array_equal(e["j"], j)
+    np.testing.assert_allclose(e["w"], w[i, j], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(e["g"], g[i, j], rtol=0, atol=1e-9)
+    assert e["i"].dtype == np.int64 and e["w"].dtype == np.float64
+
+
+def test_graph_edges_threads_agree_and_wrapper():
+    src, tgt, _, _ = clustered(400, 0.3, 0.01, 5)
+    gp = GraphParams("quadratic", 0.06, 0.1, 0.9)
+    one = cpp.graph_edges(src, tgt, gp, num_threads=1)
+    two = cpp.graph_edges(src, tgt, gp, num_threads=2)
+    for k in "ijwg":
+        np.testing.assert_array_equal(one[k], two[k])
+
+
+@pytest.mark.parametrize("self_loops", [True, False])
+@pytest.mark.parametrize("kernel,thr", [("gaussian", 0.9), ("quadratic", 0.8)])
+def test_graph_signals_equal_dense_formula(self_loops, kernel, thr):
+    src, tgt, _, _ = clustered(90, 0.4, 0.01, 7)
+    gp = GraphParams(kernel, 0.05, 0.1, thr)
+    out = cpp.graph_signals(src, tgt, gp, self_loops=self_loops)
+    w = dense_w(src, tgt, kernel, 0.05, 0.1, thr)
+    s, f, low = dense_signals(w, self_loops)
+    np.testing.assert_allclose(out["degree"], s, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(out["highpass"], f, rtol=1e-9, atol=1e-7 * np.abs(s).max() ** 2)
+    np.testing.assert_allclose(out["lowpass"], low, rtol=1e-12, atol=1e-9)
+    assert out["n_edges"] == int((np.triu(w, 1) > 0).sum())
+
+
+def test_graph_signals_isolated_nodes():
+    # no edges at all: with self-loops s = 1, f = 0, l = 2; without, everything is 0
+    src = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]], float)
+    tgt = src * 3.0
+    gp = GraphParams("quadratic", 0.05, 0.1, 0.99)
+    on = cpp.graph_signals(src, tgt, gp, self_loops=True)
+    off = cpp.graph_signals(src, tgt, gp, self_loops=False)
+    assert on["n_edges"] == 0 and off["n_edges"] == 0
+    np.testing.assert_array_equal(on["degree"], np.ones(4))
+    np.testing.assert_array_equal(on["highpass"], np.zeros(4))
+    np.testing.assert_array_equal(on["lowpass"], np.full(4, 2.0))
+    for k in ("degree", "highpass", "lowpass"):
+        np.testing.assert_array_equal(off[k], np.zeros(4))
+
+
+def test_four_node_hand_example():
+    """Worked on paper.
+
+    Points on a line, p = (x, 0, 0), q = (y, 0, 0), so d_ij = | |x_i - x_j| - |y_i - y_j| |:
+      x = 0, 1, 2, 3 and y = 0, 1, 2.2, 3.5
+      d01 = 0, d02 = d12 = 0.2, d23 = |1 - 1.3| = 0.3, d03 = d13 = 0.5.
+    Quadratic kernel, tau = 1: s = 1 - d^2, so W01 = 1, W02 = W12 = 0.96, W23 = 0.91, and
+    W03 = W13 = 0.75 fall below the threshold 0.8.
+
+    MAC's G_ij = W_ij * sum_{k != i,j} W_ik W_kj:
+      G01 = 1 * (W02 W21) = 0.9216, G02 = 0.96 * (W01 W12) = 0.9216, G12 = 0.9216,
+      G23 = 0.91 * (W20 W03 + W21 W13) = 0   (3 shares no neighbour with 2).
+    Without self-loops: s = (1.8432, 1.8432, 1.8432, 0), f = 0 (the triangle is regular),
+      l_i = s_i + (sum_j G_ij s_j) / s_i = 1.8432 + 2 * 0.9216 = 3.6864, and l_3 = 0.
+    With self-loops: off the diagonal SOG_ij = 2 W_ij^2 + G_ij:
+      SOG01 = 2 + 0.9216 = 2.9216, SOG02 = SOG12 = 2 * 0.9216 + 0.9216 = 2.7648, SOG23 = 2 * 0.8281 = 1.6562;
+      on it SOG_ii = 1 + sum_k W_ik^2: 2.9216, 2.9216, 1 + 0.9216 + 0.9216 + 0.8281 = 3.6713, 1.8281.
+      s0 = s1 = 2.9216 + 2.9216 + 2.7648 = 8.608, s2 = 3.6713 + 2 * 2.7648 + 1.6562 = 10.8571,
+      s3 = 1.8281 + 1.6562 = 3.4843.
+      f0 = f1 = 2.7648 * (8.608 - 10.8571) = -6.21831168,
+      f2 = 2 * 2.7648 * 2.2491 + 1.6562 * (10.8571 - 3.4843) = 12.43662336 + 12.21083136 = 24.64745472,
+      f3 = 1.6562 * (3.4843 - 10.8571) = -12.21083136   (sum f = 0, as a Laplacian's must).
+      l0 = 8.608 + (2.9216 * 8.608 * 2 + 2.7648 * 10.8571) / 8.608
+         = 8.608 + 80.31597568 / 8.608 = 17.93838751,
+      l2 = 10.8571 + (2 * 2.7648 * 8.608 + 3.6713 * 10.8571 + 1.6562 * 3.4843) / 10.8571 = 19.44403074,
+      l3 = 3.4843 + (1.6562 * 10.8571 + 1.8281 * 3.4843) / 3.4843 = 10.47312928.
+    """
+    x = np.array([0.0, 1.0, 2.0, 3.0])
+    y = np.array([0.0, 1.0, 2.2, 3.5])
+    src = np.column_stack([x, np.zeros(4), np.zeros(4)])
+    tgt = np.column_stack([y, np.zeros(4), np.zeros(4)])
+    gp = GraphParams("quadratic", alpha=1.0, tau=1.0, threshold=0.8)
+
+    e = cpp.graph_edges(src, tgt, gp)
+    np.testing.assert_array_equal(e["i"], [0, 0, 1, 2])
+    np.testing.assert_array_equal(e["j"], [1, 2, 2, 3])
+    np.testing.assert_allclose(e["w"], [1.0, 0.96, 0.96, 0.91], atol=1e-12)
+    np.testing.assert_allclose(e["g"], [0.9216, 0.9216, 0.9216, 0.0], atol=1e-12)
+
+    off = cpp.graph_signals(src, tgt, gp, self_loops=False)
+    assert off["n_edges"] == 4
+    np.testing.assert_allclose(off["degree"], [1.8432, 1.8432, 1.8432, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off["highpass"], [0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off["lowpass"], [3.6864, 3.6864, 3.6864, 0.0], atol=1e-12)
+
+    on = cpp.graph_signals(src, tgt, gp, self_loops=True)
+    np.testing.assert_allclose(on["degree"], [8.608, 8.608, 10.8571, 3.4843], atol=1e-12)
+    np.testing.assert_allclose(
+        on["highpass"], [-6.21831168, -6.21831168, 24.64745472, -12.21083136], atol=1e-10
+    )
+    np.testing.assert_allclose(on["lowpass"], [17.93838751, 17.93838751, 19.44403074, 10.47312928], atol=1e-8)
+
+
+def test_graph_input_validation():
+    src = np.zeros((5, 3))
+    with pytest.raises(ValueError, match="kernel"):
+        core.graph_edges(src, src, "cubic", 0.1, 0.1, 0.9)
+    with pytest.raises(ValueError, match="shape"):
+        core.graph_edges(np.zeros((5, 4)), np.zeros((5, 4)), "gaussian", 0.1, 0.1, 0.9)
+    with pytest.raises(ValueError, match="same number of rows"):
+        core.graph_edges(src, np.zeros((4, 3)), "gaussian", 0.1, 0.1, 0.9)
+    with pytest.raises(ValueError, match="threshold"):
+        core.graph_signals(src, src, "gaussian", 0.1, 0.1, 1.5)
+    # non-contiguous and float32 input is converted
+    a = np.random.default_rng(0).uniform(0, 1, (50, 6)).astype(np.float32)
+    e1 = core.graph_edges(a[:, :3], a[:, 3:], "gaussian", 0.1, 0.1, 0.5)
+    e2 = core.graph_edges(
+        a[:, :3].astype(np.float64).copy(), a[:, 3:].astype(np.float64).copy(), "gaussian", 0.1, 0.1, 0.5
+    )
+    np.testing.assert_array_equal(e1["w"], e2["w"])
+
+
+# ---------------------------------------------------------------------------------------------------
+# maximal cliques
+
+
+def igraph_cliques(n, i, j, k):
+    g = igraph.Graph(n=n, edges=list(zip(i.tolist(), j.tolist())))
+    g.simplify()
+    return {tuple(sorted(c)) for c in g.maximal_cliques(min=k)}
+
+
+def er_edges(n, p, seed):
+    rng = np.random.default_rng(seed)
+    i, j = np.triu_indices(n, 1)
+    keep = rng.random(len(i)) < p
+    return i[keep], j[keep]
+
+
+@pytest.mark.parametrize(
+    "n,p", [(20, 0.3), (20, 0.7), (60, 0.1), (60, 0.4), (150, 0.05), (150, 0.2), (300, 0.02), (300, 0.08)]
+)
+@pytest.mark.parametrize("k", [3, 4])
+def test_maximal_cliques_equal_igraph_on_random_graphs(n, p, k):
+    i, j = er_edges(n, p, seed=n + int(100 * p))
+    got, cap = core.maximal_cliques(n, i, j, min_size=k)
+    assert cap == ""
+    assert is_canonical(got)
+    assert as_sets(got) == igraph_cliques(n, i, j, k)
+    assert len(got) == len(as_sets(got))
+
+
+def test_maximal_cliques_on_a_registration_graph():
+    # the support of G on correspondences: a dense inlier block plus sparse outlier structure
+    src, tgt, _, _ = clustered(400, 0.15, 0.01, 11)
+    e = core.graph_edges(src, tgt, "quadratic", 0.06, 0.1, 0.9)
+    keep = e["g"] > 0
+    i, j = e["i"][keep], e["j"][keep]
+    got, cap = core.maximal_cliques(400, i, j, 3)
+    want = igraph_cliques(400, i, j, 3)
+    assert len(want) > 20
+    assert as_sets(got) == want and is_canonical(got) and cap == ""
+    # thread counts and the Python wrapper agree exactly (canonical order)
+    one, _ = cpp.maximal_cliques(400, i, j, 3, num_threads=1)
+    two, _ = cpp.maximal_cliques(400, i.astype(np.int32), j.astype(np.int32), 3, num_threads=2)
+    assert [c.tolist() for c in one] == [c.tolist() for c in got] == [c.tolist() for c in two]
+
+
+def test_maximal_cliques_edge_list_is_sanitised():
+    # duplicates, both directions and self-loops are ignored; a triangle plus a pendant edge
+    i = np.array([0, 1, 2, 1, 0, 3, 3, 2])
+    j = np.array([1, 0, 0, 2, 2, 3, 2, 1])
+    got, _ = core.maximal_cliques(4, i, j, 2)
+    assert [c.tolist() for c in got] == [[0, 1, 2], [2, 3]]
+    with pytest.raises(ValueError, match="out of range"):
+        core.maximal_cliques(3, np.array([0]), np.array([3]), 3)
+    assert core.maximal_cliques(0, np.zeros(0, np.int64), np.zeros(0, np.int64), 3) == ([], "")
+
+
+def test_clique_caps_are_recorded():
+    i, j = er_edges(120, 0.5, seed=3)  # a great many maximal cliques
+    got, cap = core.maximal_cliques(120, i, j, 3, max_cliques=25)
+    assert cap == "max_cliques=25" and len(got) == 25 and is_canonical(got)
+    full = igraph_cliques(120, i, j, 3)
+    assert as_sets(got) <= full
+    # a cap the graph does not reach is not reported
+    small_i, small_j = er_edges(30, 0.2, seed=4)
+    _, cap = core.maximal_cliques(30, small_i, small_j, 3, max_cliques=10**6)
+    assert cap == ""
+
+    i, j = er_edges(400, 0.5, seed=5)  # would take far longer than the limit
+    t0 = time.perf_counter()
+    got, cap = core.maximal_cliques(400, i, j, 3, time_limit_s=0.05)
+    assert time.perf_counter() - t0 < 2.0
+    assert cap == "time_limit=0.05s"
+    assert is_canonical(got)
+
+    corr, _ = make_correspondences(n=600, inlier_ratio=0.05, noise=0.002, seed=3)
+    res = cpp.CppBackend().register(corr, MacParams(max_cliques=2))
+    assert res.cap_hit == "max_cliques=2" and res.n_cliques == 2
+
+
+# ---------------------------------------------------------------------------------------------------
+# poses and MAC
+
+
+def test_kabsch_matches_numpy():
+    rng = np.random.default_rng(1)
+    for m in (3, 4, 10, 100):
+        p = rng.normal(size=(m, 3))
+        q = p @ random_rotation(rng).T + rng.normal(size=3) + rng.normal(0, 0.05, (m, 3))
+        np.testing.assert_allclose(core.kabsch(p, q), kabsch(p, q), atol=1e-9)
+        w = rng.uniform(0.1, 1.0, m)
+        np.testing.assert_allclose(core.kabsch(p, q, w), kabsch(p, q, w), atol=1e-9)
+    # a mirrored target: the reflection is fixed, both give the same proper rotation
+    p = rng.normal(size=(12, 3))
+    q = p * [1, 1, -1]
+    t = core.kabsch(p, q)
+    np.testing.assert_allclose(t, kabsch(p, q), atol=1e-9)
+    assert np.linalg.det(t[:3, :3]) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("kernel,alpha,thr", [("quadratic", 0.06, 0.99), ("gaussian", 0.02, 0.5)])
+def test_known_pose_recovered_with_95_percent_outliers(seed, kernel, alpha, thr):
+    src, tgt, r, t = clustered(200, 0.05, 0.01, seed)  # 10 inliers with 1 cm noise
+    res = cpp.CppBackend().register(
+        Correspondences(src, tgt), MacParams(graph=GraphParams(kernel, alpha, 0.1, thr), inlier_threshold=0.1)
+    )
+    assert rotation_error_deg(res.pose[:3, :3], r) < 2.0
+    assert np.linalg.norm(res.pose[:3, 3] - t) < 0.03
+    inliers = np.linalg.norm(src @ r.T + t - tgt, axis=1) < 0.1
+    assert inliers[res.clique].all()
+    assert set(res.timings) == {"graph", "cliques", "selection", "pose"}
+    np.testing.assert_array_equal(res.kept, np.arange(200))
+    assert res.score > 0 and res.n_selected >= 1 and res.n_cliques >= res.n_selected
+
+
+def test_mac_errors_are_registration_failed():
+    b = cpp.CppBackend()
+    with pytest.raises(RegistrationFailed, match="need at least 3 correspondences, got 2"):
+        b.register(Correspondences(np.zeros((2, 3)), np.zeros((2, 3))), MacParams())
+    rng = np.random.default_rng(0)
+    far = Correspondences(rng.uniform(0, 1, (20, 3)), rng.uniform(0, 100, (20, 3)))
+    with pytest.raises(RegistrationFailed, match="graph has no second-order edge"):
+        b.register(far, MacParams())
+    src, tgt, _, _ = clustered(200, 0.05, 0.002, 1)
+    with pytest.raises(RegistrationFailed, match="no maximal clique of size >= 30"):
+        b.register(Correspondences(src, tgt), MacParams(min_clique_size=30))
+    with pytest.raises(RegistrationFailed):  # also from the module itself
+        core.mac(far.src, far.tgt, "gaussian", 0.06, 0.1, 0.995, 0.1)
+
+
+def test_backend_unavailable_explains_how_to_build(monkeypatch):
+    monkeypatch.setattr(cpp, "_core", None)
+    monkeypatch.setattr(cpp, "_IMPORT_ERROR", "No module named 'fastmac_exp._mac_core'")
+    assert not cpp.available()
+    with pytest.raises(BackendUnavailable, match="pip install") as err:
+        cpp.CppBackend()
+    assert "CMake" in str(err.value) and "backend=python" in str(err.value)
+
+
+def test_threads_give_identical_results():
+    src, tgt, _, _ = clustered(800, 0.1, 0.01, 21)
+    args = (src, tgt, "quadratic", 0.06, 0.1, 0.95, 0.1)
+    a = core.mac(*args, num_threads=1, return_selected=True)
+    b = core.mac(*args, num_threads=2, return_selected=True)
+    for k in ("pose", "pose_unrefined", "clique"):
+        np.testing.assert_array_equal(a[k], b[k])
+    assert a["score"] == b["score"] and a["n_cliques"] == b["n_cliques"]
+    assert [c.tolist() for c in a["selected"]] == [c.tolist() for c in b["selected"]]
+
+
+# ---------------------------------------------------------------------------------------------------
+# parity with the Python backend
+
+
+PARITY_CASES = [
+    # n, inlier ratio, noise, kernel, alpha, threshold, min clique size, extent
+    (300, 0.1, 0.01, "quadratic", 0.06, 0.9, 3, 3.0),
+    (400, 0.05, 0.005, "gaussian", 0.03, 0.6, 3, 3.0),
+    (500, 0.2, 0.02, "gaussian", 0.06, 0.9, 3, 3.0),
+    (300, 0.3, 0.01, "quadratic", 0.06, 0.95, 4, 3.0),
+    (300, 0.5, 0.001, "quadratic", 0.06, 0.9, 3, 3.0),  # dense: the reduction of spec 2.5 fires
+    (400, 0.1, 0.05, "quadratic", 0.06, 0.9, 3, 60.0),  # KITTI-like scale (tau = 0.6 below)
+]
+
+
+@pytest.mark.parametrize("case", PARITY_CASES)
+def test_parity_with_python_backend(case):
+    python_mac = pytest.importorskip("fastmac_exp.backends.python_mac")
+    n, ratio, noise, kernel, alpha, thr, k, extent = case
+    src, tgt, _, _ = clustered(n, ratio, noise, seed=n + k, extent=extent)
+    tau = 0.6 if extent > 10 else 0.1
+    params = MacParams(graph=GraphParams(kernel, alpha, tau, thr), inlier_threshold=tau, min_clique_size=k)
+    corr = Correspondences(src, tgt)
+    a = python_mac.PythonBackend().register(corr, params)
+    b = cpp.CppBackend().register(corr, params)
+    assert (a.n_cliques, a.n_selected, a.n_edges, a.reduced) == (
+        b.n_cliques,
+        b.n_selected,
+        b.n_edges,
+        b.reduced,
+    )
+    np.testing.assert_array_equal(a.clique, b.clique)
+    np.testing.assert_allclose(b.pose_unrefined, a.pose_unrefined, atol=1e-6)
+    np.testing.assert_allclose(b.pose, a.pose, atol=1e-6)
+    assert b.score == pytest.approx(a.score, rel=1e-9)
+
+    # the selected cliques themselves, in order
+    full = core.mac(src, tgt, kernel, alpha, tau, thr, tau, min_clique_size=k, return_selected=True)
+    w = python_mac.first_order(src, tgt, params.graph)
+    g = python_mac.second_order(w)
+    gc, _ = python_mac.reduce_graph(g)
+    upper = sp.triu(gc, k=1).tocoo()
+    cliques = python_mac.canonical_cliques(
+        igraph.Graph(n=n, edges=list(zip(upper.row.tolist(), upper.col.tolist()))).maximal_cliques(min=k)
+    )
+    selected = python_mac.select_cliques(cliques, g, n)
+    assert [tuple(c.tolist()) for c in full["selected"]] == [tuple(c) for c in selected]
+    assert full["n_sog_edges"] == sp.triu(g, k=1).nnz
