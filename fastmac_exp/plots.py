@@ -95,7 +95,8 @@ def plot_sampling(agg: pd.DataFrame, path: Path) -> Path | None:
                 ax.plot(x, y, marker=MARKERS[i % len(MARKERS)], color=colors[lab], label=lab, lw=1.8, ms=6)
                 if metric == "RR" and "RR_seed_std" in m and m["RR_seed_std"].notna().any():
                     mu, sd = m["RR_seed_mean"].to_numpy(float), m["RR_seed_std"].to_numpy(float)
-                    ax.fill_between(x, mu - sd, mu + sd, color=colors[lab], alpha=0.15, lw=0)
+                    lo, hi = np.clip(mu - sd, 0, 100), np.clip(mu + sd, 0, 100)
+                    ax.fill_between(x, lo, hi, color=colors[lab], alpha=0.12, lw=0)
             _ratio_axis(ax, g["ratio"].to_numpy(float))
             ax.set_ylabel(label)
             if metric == "RR":
@@ -154,9 +155,9 @@ def plot_time_profile(agg: pd.DataFrame, path: Path) -> Path | None:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
-    fig.legend(handles, labels, loc="upper right", fontsize=8, ncols=len(labels))
-    fig.suptitle("Time profile: median time per stage", fontsize=12, x=0.3)
-    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.suptitle("Time profile: median time per stage (bars: stage medians; line: median total)", fontsize=12)
+    fig.legend(handles, labels, loc="lower center", fontsize=8, ncols=len(labels), frameon=False)
+    fig.tight_layout(rect=(0, 0.06 / len(panels), 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -171,8 +172,10 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
     colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
     backends = sorted(agg["backend"].astype(str).unique()) if "backend" in agg else []
     fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 4.8), squeeze=False)
+    labels: dict[int, list] = {}
     for col, (title, g) in enumerate(panels):
         ax = axes[0, col]
+        labels[col] = []
         for lab, m in _methods(g, mkeys):
             m = m[m["t_total_ms"].notna()]
             if m.empty:
@@ -183,8 +186,7 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
                 marker = MARKERS[b % len(MARKERS)]
                 ax.scatter(r["t_total_ms"], r["RR"], color=colors[lab], marker=marker, s=45, zorder=3)
                 name = f"{r.get('sampler', lab)}@{r['ratio']:g}" if "ratio" in r else lab
-                ax.annotate(name, (r["t_total_ms"], r["RR"]), textcoords="offset points", xytext=(4, 3),
-                            fontsize=7)  # fmt: skip
+                labels[col].append(((r["t_total_ms"], r["RR"]), name, colors[lab]))
             ax.plot([], [], color=colors[lab], marker="o", ls="-", label=lab)
         for b, name in enumerate(backends):
             ax.scatter([], [], color="grey", marker=MARKERS[b % len(MARKERS)], label=f"backend {name}")
@@ -192,18 +194,45 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
         fmt = FuncFormatter(lambda v, _: f"{v:g}")
         ax.xaxis.set_major_formatter(fmt)
         ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if f"{v:.1g}"[0] in "25" else ""))
-        ax.margins(x=0.12)
+        ax.margins(x=0.18)
         ax.set_xlabel("median total time per pair (ms, sampling + MAC)")
         ax.set_ylabel("RR (%)")
-        ax.set_ylim(-3, 103)
+        ax.set_ylim(-3, 105)
         ax.grid(True, which="both", alpha=0.3)
         ax.set_title(title or "RR against time", fontsize=10)
         ax.legend(fontsize=8, loc="best")
     fig.suptitle("Registration recall against time", fontsize=12)
     fig.tight_layout()
+    for col, items in labels.items():
+        _place_labels(axes[0, col], items)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _place_labels(ax, items: list[tuple[tuple[float, float], str, tuple]]) -> None:
+    """Annotate points (text in the point's colour), trying a few offsets per label so that labels
+    neither overlap nor leave the axes."""
+    renderer = ax.figure.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    placed = []
+    offsets = ((5, 4, "left"), (5, -11, "left"), (-5, 4, "right"), (-5, -11, "right"), (5, 12, "left"),
+               (5, -19, "left"), (-5, 12, "right"), (-5, -19, "right"))  # fmt: skip
+    for xy, text, color in sorted(items, key=lambda it: (it[0][0], -it[0][1])):
+        kw = {"textcoords": "offset points", "fontsize": 7, "color": color}
+        best = None
+        for dx, dy, ha in offsets:
+            ann = ax.annotate(text, xy, xytext=(dx, dy), ha=ha, **kw)
+            box = ann.get_window_extent(renderer)
+            inside = frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1
+            if inside and not any(box.overlaps(p) for p in placed):
+                best = (ann, box)
+                break
+            ann.remove()
+        if best is None:  # no free spot: the first choice
+            ann = ax.annotate(text, xy, xytext=offsets[0][:2], **kw)
+            best = (ann, ann.get_window_extent(renderer))
+        placed.append(best[1])
 
 
 def plot_all(agg: pd.DataFrame, out_dir: str | Path) -> list[Path]:

@@ -142,3 +142,26 @@ def test_report_errors(tmp_path, capsys):
     assert "no results" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError):
         make_report(tmp_path / "missing")
+
+
+def test_plots_with_several_datasets_backends_and_seeds(tmp_path):
+    from fastmac_exp.plots import plot_all
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for ds in ("3dmatch", "kitti"):
+        for backend in ("cpp", "python"):
+            for sampler in ("highpass", "random", "fps"):
+                for ratio in (1.0, 0.5, 0.2, 0.1, 0.05, 0.01):
+                    for seed in (0, 1):
+                        for i in range(3):
+                            ok = bool(rng.random() < ratio + 0.3)
+                            re, te = rng.random() * 3, rng.random() * 9
+                            row = _row(i, sampler, ratio, seed, ok, re, te, 100 * ratio, 150 * ratio + 1)
+                            row.update(dataset=ds, backend=backend, t_sampling_ms=2.0, t_cliques_ms=5 * ratio)
+                            rows.append(row)
+    agg = aggregate(pd.DataFrame(rows))
+    assert len(agg) == 2 * 2 * 3 * 6 and (agg["seeds"] == 2).all() and agg["RR_seed_std"].notna().all()
+    paths = plot_all(agg, tmp_path)
+    assert [p.name for p in paths] == ["sampling.png", "time_profile.png", "rr_vs_time.png"]
+    assert all(p.stat().st_size > 20000 for p in paths)
