@@ -27,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fastmac_exp.datasets.scenes import rotation_angle_deg  # noqa: E402
 from fastmac_exp.datasets.synthetic import (  # noqa: E402
     DEFAULT_VOXEL,
     FAMILY_KIND,
@@ -67,16 +68,22 @@ def load_gt(path: Path) -> np.ndarray:
     return np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path)
 
 
+ORIENT = {"normals": "open3d"}
+
+
 def measure(pair: Pair, rng_seed: int = 0) -> dict:
     kind = FAMILY_KIND[pair.family]
     t0 = time.perf_counter()
-    corr = FPFHDescriptor(voxel_size=DEFAULT_VOXEL[kind])(pair, np.random.default_rng(rng_seed))
+    fpfh = FPFHDescriptor(voxel_size=DEFAULT_VOXEL[kind], orient_normals=ORIENT["normals"])
+    corr = fpfh(pair, np.random.default_rng(rng_seed))
     t_fpfh = time.perf_counter() - t0
     vox, rad = OVERLAP_MEASURE[kind]
     return {
         "n": len(corr),
         "ir": corr.inlier_ratio,
         "overlap": overlap_fraction(pair.src_cloud, pair.tgt_cloud, pair.gt, vox, rad),
+        "rot": rotation_angle_deg(pair.gt[:3, :3]),
+        "trans": float(np.linalg.norm(pair.gt[:3, 3])),
         "fpfh_s": t_fpfh,
     }
 
@@ -116,10 +123,16 @@ def synthetic_rows(family: str, n: int, seed: int, label: str, **kwargs) -> list
 
 def summarize(rows: list[dict]) -> None:
     print("\nPer pair")
-    print(f"| {'group':30s} | {'pair':38s} | {'N corr':>6s} | {'inlier ratio':>12s} | {'overlap':>7s} |")
-    print(f"|{'-' * 32}|{'-' * 40}|{'-' * 8}|{'-' * 14}|{'-' * 9}|")
+    print(
+        f"| {'group':30s} | {'pair':38s} | {'N corr':>6s} | {'inlier ratio':>12s} | {'overlap':>7s} "
+        f"| {'GT rot deg':>10s} | {'GT trans m':>10s} |"
+    )
+    print(f"|{'-' * 32}|{'-' * 40}|{'-' * 8}|{'-' * 14}|{'-' * 9}|{'-' * 12}|{'-' * 12}|")
     for r in rows:
-        print(f"| {r['group']:30s} | {r['pair']:38s} | {r['n']:6d} | {r['ir']:12.4f} | {r['overlap']:7.3f} |")
+        print(
+            f"| {r['group']:30s} | {r['pair']:38s} | {r['n']:6d} | {r['ir']:12.4f} | {r['overlap']:7.3f} "
+            f"| {r['rot']:10.1f} | {r['trans']:10.2f} |"
+        )
     print("\nDistributions (FPFH inlier ratio under GT; overlap = fraction of source points near the target)")
     print(
         f"| {'group':30s} | {'pairs':>5s} | {'IR min':>7s} | {'IR median':>9s} | {'IR max':>7s} "
@@ -152,7 +165,14 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="an extra synthetic variant, e.g. kitti:motion_range=1,10 (repeatable)",
     )
+    ap.add_argument(
+        "--orient-normals",
+        choices=["open3d", "origin"],
+        default="open3d",
+        help="FPFH normal orientation (FPFHDescriptor.orient_normals)",
+    )
     args = ap.parse_args(argv)
+    ORIENT["normals"] = args.orient_normals
 
     rows: list[dict] = []
     if (args.data / "pairs.json").exists():
@@ -163,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += synthetic_rows(family, args.pairs, args.seed, f"synthetic {family}")
     for spec in args.extra:
         family, _, kv = spec.partition(":")
-        kwargs = {}
+        kwargs: dict = {}
         for item in [s for s in kv.split(";") if s]:
             key, _, value = item.partition("=")
             vals = [float(v) for v in value.split(",")]

@@ -25,12 +25,18 @@ def fpfh_features(
     feature_max_nn: int = 100,
     normalize: bool = True,
     what: str = "cloud",
+    orient_normals: str = "open3d",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-downsample `points` and compute FPFH features.
 
     Returns `(keypoints (M, 3) float64, features (M, 33) float64)`; the features are L2-normalised
     when `normalize` (an all-zero histogram stays zero). Raises InputError when fewer than 10 points
     survive the downsampling.
+
+    `orient_normals` fixes the normals' signs, which FPFH depends on: "open3d" keeps Open3D's default
+    (each normal flipped towards +z of the cloud's frame, as MAC's Python example), "origin" flips them
+    towards the frame's origin (PCL's default viewpoint, as MAC's C++ demo; rotation-invariant for
+    scans in their sensor frame).
     """
     from fastmac_exp._open3d import o3d
 
@@ -51,6 +57,10 @@ def fpfh_features(
     down.estimate_normals(
         o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=int(normal_max_nn))
     )
+    if orient_normals == "origin":
+        down.orient_normals_towards_camera_location(np.zeros(3))
+    elif orient_normals != "open3d":
+        raise InputError(f"orient_normals must be 'open3d' or 'origin', got {orient_normals!r}")
     feat = o3d.pipelines.registration.compute_fpfh_feature(
         down,
         o3d.geometry.KDTreeSearchParamHybrid(
@@ -98,6 +108,7 @@ class FPFHDescriptor:
         feature_max_nn: int = 100,
         mutual: bool = False,
         max_correspondences: int = 5000,
+        orient_normals: str = "open3d",
     ) -> None:
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"fpfh voxel_size must be positive or None (use the pair's), got {voxel_size}")
@@ -114,6 +125,9 @@ class FPFHDescriptor:
         self.feature_max_nn = int(feature_max_nn)
         self.mutual = bool(mutual)
         self.max_correspondences = int(max_correspondences)
+        if orient_normals not in ("open3d", "origin"):
+            raise InputError(f"orient_normals must be 'open3d' or 'origin', got {orient_normals!r}")
+        self.orient_normals = orient_normals
 
     def features(
         self, points: np.ndarray, voxel: float, what: str = "cloud"
@@ -126,6 +140,7 @@ class FPFHDescriptor:
             self.feature_radius_factor,
             self.feature_max_nn,
             what=what,
+            orient_normals=self.orient_normals,
         )
 
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:

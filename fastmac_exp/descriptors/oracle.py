@@ -67,9 +67,7 @@ class OracleDescriptor:
 
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
         if pair.gt is None:
-            raise InputError(
-                f"pair {pair.name!r}: the oracle descriptor needs the ground-truth pose (pair.gt)"
-            )
+            raise InputError(f"pair {pair.name!r}: the oracle descriptor needs the ground truth (pair.gt)")
         if pair.src_cloud is None or pair.tgt_cloud is None:
             raise InputError(
                 f"pair {pair.name!r}: the oracle descriptor needs both point clouds, but "
