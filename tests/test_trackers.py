@@ -202,6 +202,7 @@ def test_wandb_offline_run(tmp_path, monkeypatch):
     run_tracker(tracker, tmp_path, outcomes)
     runs = find_offline_runs(tmp_path)
     assert len(runs) == 1 and runs[0].name.startswith("offline-run-")
+    assert tracker.run_path == runs[0]
     data = read_offline_run(runs[0], wait_s=10)
     assert data["run"]["project"] == "fastmac-exp"
     assert data["run"]["group"] == "g1" and data["run"]["name"] == "job-1" and data["run"]["tags"] == ["test"]
@@ -259,24 +260,39 @@ def test_wandb_groups_hydra_multirun(tmp_path, monkeypatch):
     assert data["config"]["hydra"]["choices"]["sampler"] == "highpass"
 
 
-def test_wandb_missing_package_is_a_warning(monkeypatch, caplog, tmp_path):
+def test_wandb_interrupted_run_exits_nonzero(tmp_path, monkeypatch):
+    pytest.importorskip("wandb")
+    from fastmac_exp.trackers.wandb_tracker import WandbTracker, find_offline_runs, read_offline_run
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    tracker = WandbTracker(log_table=False)
+    tracker.start({}, tmp_path, ["a", "b"])
+    tracker.log_pair(make_outcome(0, "a"))
+    tracker.finish(to_table([make_outcome(0, "a").row]), {"pairs": 1, "complete": False})
+    data = read_offline_run(find_offline_runs(tmp_path)[0], wait_s=10)
+    assert data["exit_code"] == 1 and not any("results/_type" in h for h in data["history"])
+
+
+@pytest.mark.parametrize("module", ["wandb", "rerun"])
+def test_missing_package_is_a_warning(module, monkeypatch, caplog, tmp_path):
     import builtins
 
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
     from fastmac_exp.trackers.wandb_tracker import WandbTracker
 
     real_import = builtins.__import__
 
     def fake_import(name, *args, **kwargs):
-        if name == "wandb" or name.startswith("wandb."):
-            raise ImportError("No module named 'wandb'")
+        if name == module or name.startswith(module + "."):
+            raise ImportError(f"No module named '{module}'")
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", fake_import)
     with caplog.at_level("WARNING"):
-        tracker = WandbTracker()
-    assert "wandb tracker disabled" in caplog.text
+        tracker = WandbTracker() if module == "wandb" else RerunTracker()
+    assert f"{module} tracker disabled" in caplog.text
     run_tracker(tracker, tmp_path, [make_outcome(0, "a")])  # a no-op, no exception
-    assert not (tmp_path / "wandb").exists()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_default_tracker_config_instantiates():

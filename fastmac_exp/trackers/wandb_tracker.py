@@ -146,21 +146,23 @@ class WandbTracker(Tracker):
         config["num_pairs"] = len(names)
         if ctx.get("choices"):
             config["hydra"] = {"choices": ctx["choices"], "overrides": ctx.get("overrides", [])}
-        settings = wandb.Settings(
-            mode=mode,
-            silent=True,
-            console="off",
-            save_code=False,
-            disable_code=True,
-            disable_git=True,
-            disable_job_creation=True,
-            x_disable_stats=True,  # no system-metrics sampler process
-            x_disable_meta=True,  # no git / host / program metadata capture
-            x_disable_machine_info=True,
-            x_save_requirements=False,
-            finish_timeout=self.finish_timeout_s,
-            init_timeout=90.0,
-        )
+        settings = {
+            "mode": mode,
+            "silent": True,
+            "console": "off",
+            "save_code": False,
+            "disable_code": True,
+            "disable_git": True,
+            "disable_job_creation": True,
+            "x_disable_stats": True,  # no system-metrics sampler
+            "x_disable_meta": True,  # no git / host / program metadata capture
+            "x_disable_machine_info": True,
+            "x_save_requirements": False,
+            "finish_timeout": self.finish_timeout_s,  # online: stop waiting for uploads after this long
+        }
+        known = getattr(wandb.Settings, "model_fields", None)  # settings differ across wandb versions
+        if known:
+            settings = {k: v for k, v in settings.items() if k in known}
         run_dir.mkdir(parents=True, exist_ok=True)
         try:
             self.run = wandb.init(
@@ -172,7 +174,7 @@ class WandbTracker(Tracker):
                 job_type=self.job_type,
                 tags=self.tags,
                 config=config,
-                settings=settings,
+                settings=wandb.Settings(**settings),
                 reinit="create_new",  # Hydra's basic launcher runs sweep members in one process
             )
         except Exception as exc:  # noqa: BLE001
