@@ -3,6 +3,7 @@ parallel workers and trackers. Usable without Hydra: pass a DictConfig or a plai
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import traceback
@@ -121,7 +122,8 @@ def _init_worker(cfg_yaml: str) -> None:
 def _work(args: tuple[int, str]) -> PairOutcome:
     assert _WORKER is not None
     out = process_pair(_WORKER, *args)
-    out.pair = None  # clouds are large; trackers in the parent get the correspondences and the result
+    if out.pair is not None:  # clouds are large: send back the GT and thresholds, not the clouds
+        out.pair = dataclasses.replace(out.pair, src_cloud=None, tgt_cloud=None, correspondences=None)
     return out
 
 
