@@ -4,6 +4,10 @@
 #include <cstdlib>
 #include <cstring>
 
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#endif
+
 #include "mac_core.hpp"
 #include "parallel.hpp"
 
@@ -56,25 +60,85 @@ double max_distance(const GraphParams &gp) {
     return gp.tau * std::sqrt(1.0 - gp.threshold);
 }
 
+// Float32 copies of the coordinates, centred per cloud, for screening pairs before the exact test.
+//
+// With a = |p_i - p_j| and b = |q_i - q_j|, an edge needs |a - b| <= L (L: the kernel's largest
+// distance plus a margin for the float rounding of the coordinates). Since a + b <= sqrt(2 (a^2 + b^2)),
+// it then has (a^2 - b^2)^2 = (a - b)^2 (a + b)^2 <= 2 L^2 (a^2 + b^2): no square root, and nearly tight
+// for the pairs that matter (a ~ b). Allowing for the float error e <= 3e-7 (a^2 + b^2) of a^2 - b^2,
+// the screen keeps every pair with
+//     (a^2 - b^2)^2 <= (a^2 + b^2) (k1 + k2 (a^2 + b^2)),   k1 = 2.02 L^2,  k2 = 1e-11
+// ((x + e)^2 <= 1.01 x^2 + 101 e^2). Survivors are tested exactly in double.
+struct ScreenData {
+    std::vector<float> px, py, pz, qx, qy, qz;
+    float k1 = 0.f, k2 = 1e-11f;
+};
+
+// Appends to cand every j in [j0, j1) that passes the screen for row i.
+using ScreenFn = void (*)(const ScreenData &, int64_t, int64_t, int64_t, std::vector<int32_t> &);
+
 constexpr int64_t kBlock = 1024;
 
-// Screen of one row block in float32: flag[k] = | |p_i - p_j| - |q_i - q_j| | <= lim, on coordinates
-// centred per cloud. lim includes a bound on the float rounding, so every pair that can make an edge
-// is flagged; flagged pairs are then tested exactly in double.
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-__attribute__((target_clones("avx2", "default")))
-#endif
-void screen_block(const float *__restrict px, const float *__restrict py, const float *__restrict pz,
-                  const float *__restrict qx, const float *__restrict qy, const float *__restrict qz, float pxi,
-                  float pyi, float pzi, float qxi, float qyi, float qzi, float lim, int64_t len,
-                  uint8_t *__restrict flag) {
-    for (int64_t k = 0; k < len; ++k) {
-        const float ax = px[k] - pxi, ay = py[k] - pyi, az = pz[k] - pzi;
-        const float bx = qx[k] - qxi, by = qy[k] - qyi, bz = qz[k] - qzi;
-        const float a = std::sqrt(ax * ax + ay * ay + az * az);
-        const float b = std::sqrt(bx * bx + by * by + bz * bz);
-        flag[k] = (uint8_t)(std::fabs(a - b) <= lim);
+void screen_generic(const ScreenData &S, int64_t i, int64_t j0, int64_t j1, std::vector<int32_t> &cand) {
+    uint8_t flag[kBlock];
+    const float pxi = S.px[i], pyi = S.py[i], pzi = S.pz[i], qxi = S.qx[i], qyi = S.qy[i], qzi = S.qz[i];
+    const float k1 = S.k1, k2 = S.k2;
+    for (int64_t b0 = j0; b0 < j1; b0 += kBlock) {
+        const int64_t len = std::min(kBlock, j1 - b0);
+        const float *px = S.px.data() + b0, *py = S.py.data() + b0, *pz = S.pz.data() + b0;
+        const float *qx = S.qx.data() + b0, *qy = S.qy.data() + b0, *qz = S.qz.data() + b0;
+        for (int64_t k = 0; k < len; ++k) {
+            const float ax = px[k] - pxi, ay = py[k] - pyi, az = pz[k] - pzi;
+            const float bx = qx[k] - qxi, by = qy[k] - qyi, bz = qz[k] - qzi;
+            const float a2 = ax * ax + ay * ay + az * az;
+            const float b2 = bx * bx + by * by + bz * bz;
+            const float diff = a2 - b2, sum = a2 + b2;
+            flag[k] = (uint8_t)(diff * diff <= sum * (k1 + k2 * sum));
+        }
+        for (int64_t k = 0; k < len; ++k)
+            if (flag[k]) cand.push_back((int32_t)(b0 + k));
     }
+}
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define FASTMAC_HAVE_AVX2_KERNEL 1
+// The same screen, 8 pairs per step, candidates taken from the comparison's bit mask.
+__attribute__((target("avx2"))) void screen_avx2(const ScreenData &S, int64_t i, int64_t j0, int64_t j1,
+                                                 std::vector<int32_t> &cand) {
+    const __m256 pxi = _mm256_set1_ps(S.px[i]), pyi = _mm256_set1_ps(S.py[i]), pzi = _mm256_set1_ps(S.pz[i]);
+    const __m256 qxi = _mm256_set1_ps(S.qx[i]), qyi = _mm256_set1_ps(S.qy[i]), qzi = _mm256_set1_ps(S.qz[i]);
+    const __m256 k1 = _mm256_set1_ps(S.k1), k2 = _mm256_set1_ps(S.k2);
+    const float *px = S.px.data(), *py = S.py.data(), *pz = S.pz.data();
+    const float *qx = S.qx.data(), *qy = S.qy.data(), *qz = S.qz.data();
+    int64_t j = j0;
+    for (; j + 8 <= j1; j += 8) {
+        const __m256 ax = _mm256_sub_ps(_mm256_loadu_ps(px + j), pxi);
+        const __m256 ay = _mm256_sub_ps(_mm256_loadu_ps(py + j), pyi);
+        const __m256 az = _mm256_sub_ps(_mm256_loadu_ps(pz + j), pzi);
+        const __m256 bx = _mm256_sub_ps(_mm256_loadu_ps(qx + j), qxi);
+        const __m256 by = _mm256_sub_ps(_mm256_loadu_ps(qy + j), qyi);
+        const __m256 bz = _mm256_sub_ps(_mm256_loadu_ps(qz + j), qzi);
+        const __m256 a2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(ax, ax), _mm256_mul_ps(ay, ay)),
+                                        _mm256_mul_ps(az, az));
+        const __m256 b2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(bx, bx), _mm256_mul_ps(by, by)),
+                                        _mm256_mul_ps(bz, bz));
+        const __m256 diff = _mm256_sub_ps(a2, b2), sum = _mm256_add_ps(a2, b2);
+        const __m256 rhs = _mm256_mul_ps(sum, _mm256_add_ps(k1, _mm256_mul_ps(k2, sum)));
+        int bits = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_mul_ps(diff, diff), rhs, _CMP_LE_OQ));
+        while (bits) {
+            cand.push_back((int32_t)(j + __builtin_ctz(bits)));
+            bits &= bits - 1;
+        }
+    }
+    if (j < j1) screen_generic(S, i, j, j1, cand);
+}
+#endif
+
+ScreenFn pick_screen() {
+#ifdef FASTMAC_HAVE_AVX2_KERNEL
+    if (__builtin_cpu_supports("avx2")) return screen_avx2;
+#endif
+    return screen_generic;
 }
 
 }  // namespace
@@ -88,7 +152,7 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     W.upper.assign(n, 0);
     if (n == 0) return W;
 
-    // Centred float32 copies for the screen; Rmax bounds the coordinates' magnitude.
+    // Centred float32 copies for the screen.
     double cs[3] = {0, 0, 0}, ct[3] = {0, 0, 0};
     for (int64_t i = 0; i < n; ++i)
         for (int r = 0; r < 3; ++r) {
@@ -99,68 +163,72 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         cs[r] /= (double)n;
         ct[r] /= (double)n;
     }
-    std::vector<float> px(n), py(n), pz(n), qx(n), qy(n), qz(n);
+    ScreenData S;
+    for (auto *v : {&S.px, &S.py, &S.pz, &S.qx, &S.qy, &S.qz}) v->resize(n);
     double rmax = 0.0;
     for (int64_t i = 0; i < n; ++i) {
-        px[i] = (float)(src[3 * i] - cs[0]);
-        py[i] = (float)(src[3 * i + 1] - cs[1]);
-        pz[i] = (float)(src[3 * i + 2] - cs[2]);
-        qx[i] = (float)(tgt[3 * i] - ct[0]);
-        qy[i] = (float)(tgt[3 * i + 1] - ct[1]);
-        qz[i] = (float)(tgt[3 * i + 2] - ct[2]);
-        for (float v : {px[i], py[i], pz[i], qx[i], qy[i], qz[i]}) rmax = std::max(rmax, (double)std::fabs(v));
+        S.px[i] = (float)(src[3 * i] - cs[0]);
+        S.py[i] = (float)(src[3 * i + 1] - cs[1]);
+        S.pz[i] = (float)(src[3 * i + 2] - cs[2]);
+        S.qx[i] = (float)(tgt[3 * i] - ct[0]);
+        S.qy[i] = (float)(tgt[3 * i + 1] - ct[1]);
+        S.qz[i] = (float)(tgt[3 * i + 2] - ct[2]);
+        for (float v : {S.px[i], S.py[i], S.pz[i], S.qx[i], S.qy[i], S.qz[i]})
+            rmax = std::max(rmax, (double)std::fabs(v));
     }
-    // Float rounding moves each distance by well under 2e-6 * rmax (coordinates, differences, squares,
-    // sum and sqrt); 1e-5 * rmax is a safe margin.
+    // Float rounding of the coordinates moves each distance by well under 2e-6 * rmax; 1e-5 * rmax is a
+    // safe margin.
     const double m = max_distance(gp) * (1.0 + 1e-7) + 1e-12;
-    const float lim = (float)((m + 1e-5 * rmax) * (1.0 + 1e-6));
+    const double lim = (m + 1e-5 * rmax) * (1.0 + 1e-6);
+    S.k1 = (float)(2.02 * lim * lim * (1.0 + 1e-5));
+    const ScreenFn screen = pick_screen();
     const double thr = gp.threshold;
 
-    // Upper-triangle neighbours of each row, found in parallel.
-    std::vector<std::vector<int32_t>> ucol(n);
-    std::vector<std::vector<double>> uw(n);
+    // Upper-triangle neighbours of each row, found in parallel; each thread appends its rows to its own
+    // buffers (no allocation per row).
+    struct Part {
+        std::vector<int32_t> col;
+        std::vector<double> w;
+    };
+    std::vector<Part> parts(nthreads);
+    std::vector<int32_t> row_tid(n, 0);
+    std::vector<int64_t> row_off(n, 0), row_len(n, 0);
     DynamicRange rows(0, n - 1, 16);
-    parallel_region(nthreads, [&](int) {
-        std::vector<uint8_t> flag(kBlock + 8);
+    parallel_region(nthreads, [&](int tid) {
+        Part &part = parts[tid];
+        std::vector<int32_t> cand;
         int64_t lo, hi;
-        while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
-            auto &cols = ucol[i];
-            auto &ws = uw[i];
-            for (int64_t j0 = i + 1; j0 < n; j0 += kBlock) {
-                const int64_t len = std::min(kBlock, n - j0);
-                screen_block(px.data() + j0, py.data() + j0, pz.data() + j0, qx.data() + j0, qy.data() + j0,
-                             qz.data() + j0, px[i], py[i], pz[i], qx[i], qy[i], qz[i], lim, len, flag.data());
-                std::memset(flag.data() + len, 0, 8);
-                for (int64_t k8 = 0; k8 < len; k8 += 8) {
-                    uint64_t word;
-                    std::memcpy(&word, flag.data() + k8, 8);
-                    if (!word) continue;
-                    for (int64_t k = k8; k < k8 + 8 && k < len; ++k) {
-                        if (!flag[k]) continue;
-                        const int64_t j = j0 + k;
-                        // Exact test, as the reference computes it: norms of the differences, in double.
-                        const double ax = src[3 * i] - src[3 * j], ay = src[3 * i + 1] - src[3 * j + 1],
-                                     az = src[3 * i + 2] - src[3 * j + 2];
-                        const double bx = tgt[3 * i] - tgt[3 * j], by = tgt[3 * i + 1] - tgt[3 * j + 1],
-                                     bz = tgt[3 * i + 2] - tgt[3 * j + 2];
-                        const double dp = std::sqrt(ax * ax + ay * ay + az * az);
-                        const double dq = std::sqrt(bx * bx + by * by + bz * bz);
-                        const double s = kernel_value(std::fabs(dp - dq), gp);
-                        if (s >= thr) {
-                            cols.push_back((int32_t)j);
-                            ws.push_back(s);
-                        }
+        while (rows.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) {
+                cand.clear();
+                screen(S, i, i + 1, n, cand);
+                row_tid[i] = tid;
+                row_off[i] = (int64_t)part.col.size();
+                const double *pi = src + 3 * i, *qi = tgt + 3 * i;
+                for (int32_t j : cand) {
+                    // Exact test, as the reference computes it: norms of the differences, in double.
+                    const double *pj = src + 3 * (int64_t)j, *qj = tgt + 3 * (int64_t)j;
+                    const double ax = pi[0] - pj[0], ay = pi[1] - pj[1], az = pi[2] - pj[2];
+                    const double bx = qi[0] - qj[0], by = qi[1] - qj[1], bz = qi[2] - qj[2];
+                    const double dp = std::sqrt(ax * ax + ay * ay + az * az);
+                    const double dq = std::sqrt(bx * bx + by * by + bz * bz);
+                    const double s = kernel_value(std::fabs(dp - dq), gp);
+                    if (s >= thr) {
+                        part.col.push_back(j);
+                        part.w.push_back(s);
                     }
                 }
+                row_len[i] = (int64_t)part.col.size() - row_off[i];
             }
-        }
     });
 
     // Assemble the symmetric CSR: row i = [neighbours j < i ascending | neighbours j > i ascending].
     std::vector<int64_t> nlow(n, 0);
-    for (int64_t i = 0; i < n; ++i)
-        for (int32_t j : ucol[i]) ++nlow[j];
-    for (int64_t i = 0; i < n; ++i) W.ptr[i + 1] = W.ptr[i] + nlow[i] + (int64_t)ucol[i].size();
+    for (int64_t i = 0; i < n; ++i) {
+        const int32_t *c = parts[row_tid[i]].col.data() + row_off[i];
+        for (int64_t k = 0; k < row_len[i]; ++k) ++nlow[c[k]];
+    }
+    for (int64_t i = 0; i < n; ++i) W.ptr[i + 1] = W.ptr[i] + nlow[i] + row_len[i];
     W.col.resize(W.ptr[n]);
     W.w.resize(W.ptr[n]);
     std::vector<int64_t> cursor(W.ptr.begin(), W.ptr.end() - 1);
@@ -168,17 +236,15 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         W.upper[i] = W.ptr[i] + nlow[i];
         // cursor[i] == W.upper[i] here: all lower neighbours of i (rows < i) are already placed.
         const int64_t base = W.upper[i];
-        const auto &cols = ucol[i];
-        const auto &ws = uw[i];
-        for (size_t k = 0; k < cols.size(); ++k) {
-            W.col[base + k] = cols[k];
+        const int32_t *c = parts[row_tid[i]].col.data() + row_off[i];
+        const double *ws = parts[row_tid[i]].w.data() + row_off[i];
+        for (int64_t k = 0; k < row_len[i]; ++k) {
+            W.col[base + k] = c[k];
             W.w[base + k] = ws[k];
-            const int64_t p = cursor[cols[k]]++;
+            const int64_t p = cursor[c[k]]++;
             W.col[p] = (int32_t)i;
             W.w[p] = ws[k];
         }
-        std::vector<int32_t>().swap(ucol[i]);
-        std::vector<double>().swap(uw[i]);
     }
     return W;
 }
@@ -200,11 +266,27 @@ std::vector<double> second_order(const Csr &W, int nthreads) {
             if (W.upper[i] == ptr[i + 1]) continue;
             for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = w[p];
             for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) {
+                // d[j] = W_ij is never read: j is not its own neighbour. Four partial sums keep the
+                // loop from waiting on one addition chain (most terms are zero: d is sparse).
                 const int32_t j = col[p];
-                double acc = 0.0;
-                for (int64_t q = ptr[j]; q < ptr[j + 1]; ++q) acc += d[col[q]] * w[q];
-                // d[j] = W_ij is never read: j is not its own neighbour.
-                G[p] = w[p] * acc;
+                const int64_t q0 = ptr[j], q1 = ptr[j + 1];
+                if (p + 2 < ptr[i + 1]) {  // rows j are scattered in memory: start fetching one ahead
+                    const int64_t r = ptr[col[p + 2]];
+                    for (int line = 0; line < 8; ++line) {
+                        __builtin_prefetch(col + r + 16 * line);
+                        __builtin_prefetch(w + r + 8 * line);
+                    }
+                }
+                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
+                int64_t q = q0;
+                for (; q + 4 <= q1; q += 4) {
+                    a0 += d[col[q]] * w[q];
+                    a1 += d[col[q + 1]] * w[q + 1];
+                    a2 += d[col[q + 2]] * w[q + 2];
+                    a3 += d[col[q + 3]] * w[q + 3];
+                }
+                for (; q < q1; ++q) a0 += d[col[q]] * w[q];
+                G[p] = w[p] * ((a0 + a1) + (a2 + a3));
             }
             for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = 0.0;
         }
