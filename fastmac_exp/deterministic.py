@@ -15,7 +15,7 @@ import scipy.linalg
 from fastmac_exp.errors import InputError
 from fastmac_exp.graph import first_order
 from fastmac_exp.params import GraphParams
-from fastmac_exp.samplers import SampleResult, Sampler
+from fastmac_exp.samplers import Sampler, SampleResult
 from fastmac_exp.types import Correspondences
 
 
@@ -40,7 +40,9 @@ def greedy_e_optimal(v: np.ndarray, k: int, chunk: int = 256) -> np.ndarray:
         for a in range(0, len(cand), chunk):
             rows = cand[a : a + chunk]
             # Gram matrices of [sel; v_r] for every candidate r: smallest eigenvalue = sigma_min^2
-            stacked = np.concatenate([np.broadcast_to(sel, (len(rows), *sel.shape)), v[rows][:, None, :]], axis=1)
+            stacked = np.concatenate(
+                [np.broadcast_to(sel, (len(rows), *sel.shape)), v[rows][:, None, :]], axis=1
+            )
             if stacked.shape[1] <= stacked.shape[2]:
                 gram = stacked @ stacked.transpose(0, 2, 1)
             else:

@@ -133,7 +133,9 @@ def _progress(total: int, enabled: bool):
     return tqdm(total=total, disable=not enabled, unit="pair", dynamic_ncols=True)
 
 
-def run_experiment(cfg: DictConfig | dict[str, Any], run_dir: str | Path) -> tuple[pd.DataFrame, dict[str, Any]]:
+def run_experiment(
+    cfg: DictConfig | dict[str, Any], run_dir: str | Path
+) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Run every (remaining) pair, write results.{jsonl,csv,parquet}, summary.json and config.yaml."""
     cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     if cfg.protocol not in PROTOCOLS:
@@ -183,7 +185,9 @@ def run_experiment(cfg: DictConfig | dict[str, Any], run_dir: str | Path) -> tup
                 consume(process_pair(comp, i, n))
         else:
             cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
-            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,)) as pool:
+            with ProcessPoolExecutor(
+                max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,)
+            ) as pool:
                 for out in pool.map(_work, todo):
                     consume(out)
     except KeyboardInterrupt:
@@ -199,7 +203,9 @@ def run_experiment(cfg: DictConfig | dict[str, Any], run_dir: str | Path) -> tup
             descriptor=comp.labels["descriptor"],
             sampler=comp.labels["sampler"],
             backend=comp.labels["backend"],
-            ratio=float(cfg.ratio),
+            ratio=float(table["ratio"].dropna().iloc[0])
+            if table["ratio"].dropna().nunique() == 1
+            else float(cfg.ratio),
             seed=int(cfg.seed),
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,
@@ -222,7 +228,9 @@ def _save_config(cfg: DictConfig, run_dir: Path) -> None:
         keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "seed", "protocol", "graph", "mac")
         changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
         if changed:
-            log.warning("resume: config differs from the saved run in %s; continuing with the new one", changed)
+            log.warning(
+                "resume: config differs from the saved run in %s; continuing with the new one", changed
+            )
         path = run_dir / "config.resumed.yaml"
     OmegaConf.save(cfg, path, resolve=False)
 
@@ -247,14 +255,15 @@ def _make_trackers(cfg: DictConfig) -> list:
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary table."""
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
+    s = summary
+    nan = float("nan")
     lines = [
-        f"dataset={summary.get('dataset')} descriptor={summary.get('descriptor')} sampler={summary.get('sampler')} "
-        f"ratio={summary.get('ratio')} backend={summary.get('backend')} protocol={summary.get('protocol')}",
-        f"pairs: {summary.get('pairs')}  registered: {summary.get('registered', 0)}  failed: {summary.get('failed', 0)}",
-        f"RR: {100 * summary.get('RR', float('nan')):.1f}%   RE: {summary.get('RE_deg', float('nan')):.2f} deg   "
-        f"TE: {summary.get('TE_cm', float('nan')):.2f} cm   "
-        f"inlier ratio in/kept: {summary.get('inlier_ratio_in', float('nan')):.3f}/"
-        f"{summary.get('inlier_ratio_kept', float('nan')):.3f}",
-        "median ms: " + "  ".join(f"{s} {summary.get(f'median_{s}_ms', float('nan')):.1f}" for s in stages),
+        f"dataset={s.get('dataset')} descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
+        f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
+        f"pairs: {s.get('pairs')}  registered: {s.get('registered', 0)}  failed: {s.get('failed', 0)}",
+        f"RR: {100 * s.get('RR', nan):.1f}%   RE: {s.get('RE_deg', nan):.2f} deg   "
+        f"TE: {s.get('TE_cm', nan):.2f} cm   "
+        f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
+        "median ms: " + "  ".join(f"{st} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
     return "\n".join(lines)

@@ -47,7 +47,9 @@ def summarize(table: pd.DataFrame) -> dict:
         "RR": float(ok.mean()),
         "RE_deg": float(table.loc[ok, "re_deg"].mean()) if ok.any() else float("nan"),
         "TE_cm": float(table.loc[ok, "te_cm"].mean()) if ok.any() else float("nan"),
-        "inlier_ratio_in": float(table["inlier_ratio_in"].mean()) if "inlier_ratio_in" in table else float("nan"),
+        "inlier_ratio_in": float(table["inlier_ratio_in"].mean())
+        if "inlier_ratio_in" in table
+        else float("nan"),
         "inlier_ratio_kept": float(table["inlier_ratio_kept"].mean())
         if "inlier_ratio_kept" in table
         else float("nan"),

@@ -18,7 +18,7 @@ FAMILIES = ("3dmatch", "3dlomatch", "kitti")
 
 @dataclass(frozen=True)
 class GraphParams:
-    """First-order compatibility: d_ij = | |p_i - p_j| - |q_i - q_j| |, s = kernel(d), edge iff s >= threshold.
+    """First-order compatibility: d_ij = | |p_i - p_j| - |q_i - q_j| |, s = kernel(d), edge iff s >= thr.
 
     gaussian: s = exp(-d^2 / (2 alpha^2)); quadratic: s = 1 - d^2 / tau^2. Surviving weights keep their value.
     """
@@ -62,7 +62,9 @@ class MacParams:
         if self.inlier_threshold <= 0:
             raise InputError(f"inlier_threshold must be positive, got {self.inlier_threshold}")
         if self.min_clique_size < 3:
-            raise InputError(f"min_clique_size must be at least 3 (a pose needs 3 points), got {self.min_clique_size}")
+            raise InputError(
+                f"min_clique_size must be at least 3 (a pose needs 3 points), got {self.min_clique_size}"
+            )
 
 
 # (family, descriptor) -> (kernel, threshold); unknown descriptors fall back to the family default.
@@ -111,13 +113,22 @@ def mac_params_for(
     g = {k: v for k, v in (graph_overrides or {}).items() if v is not None}
     unknown = set(g) - {"kernel", "alpha", "tau", "threshold"}
     if unknown:
-        raise InputError(f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold")
+        raise InputError(
+            f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold"
+        )
     graph = replace(graph, **g)
     base = MacParams(
         graph=graph, inlier_threshold=INLIER_THRESHOLD[family], min_clique_size=MIN_CLIQUE_SIZE[family]
     )
     m = {k: v for k, v in (mac_overrides or {}).items() if v is not None}
-    known = {"inlier_threshold", "min_clique_size", "refine_iters", "reduction", "max_cliques", "time_limit_s"}
+    known = {
+        "inlier_threshold",
+        "min_clique_size",
+        "refine_iters",
+        "reduction",
+        "max_cliques",
+        "time_limit_s",
+    }
     if set(m) - known:
         raise InputError(f"unknown mac parameter(s) {sorted(set(m) - known)}; known: {sorted(known)}")
     return replace(base, **m)

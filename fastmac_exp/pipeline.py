@@ -1,4 +1,4 @@
-"""One pair through the whole flow: describe -> sample -> MAC -> metrics (DESIGN.md, 'The flow of one pair')."""
+"""One pair through the whole flow: describe -> sample -> MAC -> metrics (DESIGN.md, the flow of one pair)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.metrics import pose_errors
 from fastmac_exp.params import MacParams, mac_params_for
-from fastmac_exp.samplers import NoSampler, SampleResult, Sampler
+from fastmac_exp.samplers import NoSampler, Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
@@ -116,9 +116,7 @@ class PairOutcome:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def evaluate(
-    row: dict[str, Any], pair: Pair, result: RegistrationResult, protocol: str
-) -> None:
+def evaluate(row: dict[str, Any], pair: Pair, result: RegistrationResult, protocol: str) -> None:
     """Fill RE/TE/success into `row`. honest: judge the final pose. reference: the original code's
     GT-assisted rule (spec 5.4): a pair counts as registered when either the unrefined or the refined pose
     passes; RE/TE are those of the refined pose."""
@@ -130,7 +128,10 @@ def evaluate(
     final = pose_errors(result.pose, pair.gt, pair.re_thresh_deg, pair.te_thresh_m)
     success = final.success
     if protocol == "reference":
-        success = success or pose_errors(result.pose_unrefined, pair.gt, pair.re_thresh_deg, pair.te_thresh_m).success
+        success = (
+            success
+            or pose_errors(result.pose_unrefined, pair.gt, pair.re_thresh_deg, pair.te_thresh_m).success
+        )
     row.update(re_deg=final.re_deg, te_cm=final.te_cm, success=bool(success))
 
 
@@ -153,14 +154,18 @@ def run_pair(
     describe_ms = (time.perf_counter() - t0) * 1e3 if pair.correspondences is None else 0.0
     if pair.gt is not None and corr.labels is None:
         pair.label(corr)
-    params = mac_params_for(pair.family, descriptor.graph_key, pair.resolution, graph_overrides, mac_overrides)
+    params = mac_params_for(
+        pair.family, descriptor.graph_key, pair.resolution, graph_overrides, mac_overrides
+    )
     row.update(
         n_in=len(corr),
         inliers_in=int(corr.labels.sum()) if corr.labels is not None else None,
         inlier_ratio_in=corr.inlier_ratio,
     )
     effective_ratio = 1.0 if isinstance(sampler, NoSampler) else ratio
-    result, sample = register_correspondences(corr, params, sampler, backend, effective_ratio, pair.family, rng)
+    result, sample = register_correspondences(
+        corr, params, sampler, backend, effective_ratio, pair.family, rng
+    )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     row.update(
         ratio=effective_ratio,

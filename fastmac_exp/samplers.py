@@ -140,7 +140,9 @@ class Sampler:
         idx, zero_filled = draw_proportional(scores, k, rng)
         return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled)
 
-    def scores(self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator) -> np.ndarray:
+    def scores(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> np.ndarray:
         raise NotImplementedError
 
 
@@ -175,7 +177,9 @@ class GraphFilterSampler(Sampler):
         self.impl = impl
         self.device = device
 
-    def scores(self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator) -> np.ndarray:
+    def scores(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> np.ndarray:
         sig = compute_signals(corr, gp, self_loops=self.self_loops, impl=self.impl, device=self.device)
         r = filter_response(sig, self.filter)
         if self.squared:
@@ -224,7 +228,9 @@ class XYZSampler(Sampler):
         self.impl = impl
         self.name = f"xyz{code}"
 
-    def scores(self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator) -> np.ndarray:
+    def scores(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> np.ndarray:
         w_src, w_tgt, w_deg = self.weights
         total = np.zeros(len(corr))
         if w_src:

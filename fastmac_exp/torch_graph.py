@@ -19,8 +19,10 @@ def _first_order(src: torch.Tensor, tgt: torch.Tensor, gp: GraphParams, block: i
     w = torch.zeros((n, n), dtype=src.dtype, device=src.device)
     for a in range(0, n, block):
         b = min(n, a + block)
-        d = (torch.cdist(src[a:b], src, compute_mode="donot_use_mm_for_euclid_dist")
-             - torch.cdist(tgt[a:b], tgt, compute_mode="donot_use_mm_for_euclid_dist")).abs()
+        d = (
+            torch.cdist(src[a:b], src, compute_mode="donot_use_mm_for_euclid_dist")
+            - torch.cdist(tgt[a:b], tgt, compute_mode="donot_use_mm_for_euclid_dist")
+        ).abs()
         s = torch.exp(-(d**2) / (2 * gp.alpha**2)) if gp.kernel == GAUSSIAN else 1 - d**2 / gp.tau**2
         w[a:b] = torch.where(s >= gp.threshold, s, torch.zeros_like(s))
     w.fill_diagonal_(0)
@@ -53,5 +55,8 @@ def graph_signals_torch(
     lowpass = torch.where(s > 0, s + (sog @ s) / safe, torch.zeros_like(s))
     n_edges = int(((w > 0).sum().item() - (w.shape[0] if self_loops else 0)) // 2)
     return GraphSignals(
-        degree=s.cpu().numpy(), highpass=highpass.cpu().numpy(), lowpass=lowpass.cpu().numpy(), n_edges=n_edges
+        degree=s.cpu().numpy(),
+        highpass=highpass.cpu().numpy(),
+        lowpass=lowpass.cpu().numpy(),
+        n_edges=n_edges,
     )

@@ -38,7 +38,9 @@ class ListDataset:
 
     name = "list"
 
-    def __init__(self, num_pairs: int = 4, n: int = 300, inlier_ratio: float = 0.2, bad: tuple[int, ...] = ()):
+    def __init__(
+        self, num_pairs: int = 4, n: int = 300, inlier_ratio: float = 0.2, bad: tuple[int, ...] = ()
+    ):
         self.num_pairs, self.n, self.inlier_ratio, self.bad = num_pairs, n, inlier_ratio, set(bad)
 
     def names(self) -> list[str]:

@@ -29,7 +29,7 @@ def _compose(overrides: list[str]):
 def test_every_group_option_composes(group, option):
     cfg = _compose([f"{group}={option}"])
     node = cfg[group]
-    for key, sub in node.items() if "_target_" not in node else [(group, node)]:
+    for sub in node.values() if "_target_" not in node else [node]:
         if OmegaConf.is_dict(sub) and "_target_" in sub:
             get_class(sub["_target_"])  # the named implementation exists and imports
 

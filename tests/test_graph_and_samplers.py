@@ -23,9 +23,7 @@ from fastmac_exp.samplers import (
 from tests.conftest import make_correspondences
 
 # A triangle 0-1-2 with a pendant node 3 hanging off node 2, all weights 1.
-HAND_W = sp.csr_matrix(
-    np.array([[0, 1, 1, 0], [1, 0, 1, 0], [1, 1, 0, 1], [0, 0, 1, 0]], dtype=float)
-)
+HAND_W = sp.csr_matrix(np.array([[0, 1, 1, 0], [1, 0, 1, 0], [1, 1, 0, 1], [0, 0, 1, 0]], dtype=float))
 
 
 def test_mac_second_order_graph_hand_case():
@@ -92,7 +90,9 @@ def test_torch_signals_match_numpy():
         assert a.n_edges == b.n_edges
 
 
-@pytest.mark.parametrize(("n", "ratio", "k"), [(1000, 0.2, 200), (1000, 1.0, 1000), (999, 0.05, 49), (10, 0.3, 3)])
+@pytest.mark.parametrize(
+    ("n", "ratio", "k"), [(1000, 0.2, 200), (1000, 1.0, 1000), (999, 0.05, 49), (10, 0.3, 3)]
+)
 def test_sample_count(n, ratio, k):
     assert sample_count(n, ratio) == k
 
@@ -130,8 +130,14 @@ def _ctx():
 
 @pytest.mark.parametrize(
     "sampler",
-    [GraphFilterSampler("highpass", impl="python"), GraphFilterSampler("lowpass", impl="python"),
-     GraphFilterSampler("allpass", impl="python"), XYZSampler("111", impl="python"), RandomSampler(), FPSSampler()],
+    [
+        GraphFilterSampler("highpass", impl="python"),
+        GraphFilterSampler("lowpass", impl="python"),
+        GraphFilterSampler("allpass", impl="python"),
+        XYZSampler("111", impl="python"),
+        RandomSampler(),
+        FPSSampler(),
+    ],
     ids=lambda s: s.name,
 )
 def test_samplers_return_k_distinct_indices_and_are_seeded(sampler):
@@ -147,7 +153,9 @@ def test_samplers_return_k_distinct_indices_and_are_seeded(sampler):
 def test_none_sampler_keeps_everything():
     corr, _ = make_correspondences(n=50)
     gp, fam = _ctx()
-    assert NoSampler().sample(corr, 0.1, gp, fam, np.random.default_rng(0)).indices.tolist() == list(range(50))
+    assert NoSampler().sample(corr, 0.1, gp, fam, np.random.default_rng(0)).indices.tolist() == list(
+        range(50)
+    )
 
 
 def test_highpass_prefers_inliers_over_random():

@@ -12,8 +12,8 @@ from omegaconf import OmegaConf
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.descriptors.base import Descriptor  # noqa: F401 - interface import must work
 from fastmac_exp.experiment import run_experiment
-from fastmac_exp.pipeline import register, register_correspondences
 from fastmac_exp.params import mac_params_for
+from fastmac_exp.pipeline import register, register_correspondences
 from fastmac_exp.results import COLUMNS, load_table
 from fastmac_exp.samplers import GraphFilterSampler, NoSampler
 from tests.conftest import make_correspondences

@@ -78,7 +78,8 @@ def test_node_guided_selection_hand_case():
     for a, b in [(2, 3), (2, 4), (3, 4)]:
         g2[a, b] = g2[b, a] = 1.0
     assert select_cliques(canonical_cliques([[0, 1, 2], [2, 3, 4]]), sp.csr_matrix(g2), 6) == [
-        (0, 1, 2), (2, 3, 4)
+        (0, 1, 2),
+        (2, 3, 4),
     ]
 
 

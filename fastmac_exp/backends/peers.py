@@ -40,7 +40,9 @@ class RansacBackend:
         self.max_iterations = max_iterations
         self.confidence = confidence
         self.seed = seed
-        self.name = f"ransac{max_iterations // 1000}k" if max_iterations >= 1000 else f"ransac{max_iterations}"
+        self.name = (
+            f"ransac{max_iterations // 1000}k" if max_iterations >= 1000 else f"ransac{max_iterations}"
+        )
 
     def register(self, corr: Correspondences, params: MacParams) -> RegistrationResult:
         if len(corr) < 3:

@@ -1,0 +1,192 @@
+"""The learned-descriptor front end: the shipped ONNX model, its contract, errors, and correspondences."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fastmac_exp.descriptors.onnx_descriptor import (
+    DEFAULT_MODEL,
+    OnnxDescriptor,
+    extract_patches,
+    repo_root,
+    support_clouds,
+    voxel_down,
+)
+from fastmac_exp.errors import InputError
+from fastmac_exp.types import Correspondences, Pair
+
+MODEL = repo_root() / DEFAULT_MODEL
+
+
+def box_surface(rng, lo, hi, spacing: float) -> np.ndarray:
+    """Points on the surface of an axis-aligned box, about `spacing` apart."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    out = []
+    for axis in range(3):
+        for side in (lo[axis], hi[axis]):
+            a, b = [i for i in range(3) if i != axis]
+            area = (hi[a] - lo[a]) * (hi[b] - lo[b])
+            n = max(4, int(area / spacing**2))
+            p = np.empty((n, 3))
+            p[:, axis] = side
+            p[:, a] = rng.uniform(lo[a], hi[a], n)
+            p[:, b] = rng.uniform(lo[b], hi[b], n)
+            out.append(p)
+    return np.vstack(out)
+
+
+def toy_room(seed: int = 0, spacing: float = 0.015) -> np.ndarray:
+    """A room corner (floor, two walls) with a few boxes: about 2 m across, metres."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for axis in range(3):  # floor z=0, walls x=0 and y=0
+        n = int(4.0 / spacing**2)
+        p = rng.uniform(0, 2.0, (n, 3))
+        p[:, axis] = 0.0
+        parts.append(p)
+    for _ in range(6):
+        c = rng.uniform(0.3, 1.7, 2)
+        s = rng.uniform(0.15, 0.5, 3)
+        parts.append(box_surface(rng, [c[0], c[1], 0.0], [c[0] + s[0], c[1] + s[1], s[2]], spacing))
+    pts = np.vstack(parts)
+    return pts + rng.normal(scale=0.002, size=pts.shape)
+
+
+def random_rotation(rng) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+@pytest.fixture(scope="module")
+def desc() -> OnnxDescriptor:
+    return OnnxDescriptor()
+
+
+def test_shipped_model_meets_contract(desc):
+    import onnxruntime as ort
+
+    assert MODEL.is_file() and MODEL.stat().st_size < 5e6
+    sess = ort.InferenceSession(str(MODEL), providers=["CPUExecutionProvider"])
+    (inp,), (out,) = sess.get_inputs(), sess.get_outputs()
+    assert inp.type == "tensor(float)" and len(inp.shape) == 3 and not isinstance(inp.shape[0], int)
+    assert out.type == "tensor(float)" and len(out.shape) == 2
+    k, c = desc.params.size, desc.params.channels
+    for m in (1, 7, 300):  # dynamic batch axis
+        x = np.random.default_rng(m).uniform(-1, 1, (m, k, c)).astype(np.float32)
+        y = sess.run(None, {inp.name: x})[0]
+        assert y.shape == (m, 32) and y.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(y, axis=1), 1.0, atol=1e-4)
+    kp, f = desc.features(toy_room(), 0.05)
+    assert f.shape == (len(kp), 32) and f.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-5)
+
+
+def test_rotation_robustness(desc):
+    pts = toy_room(1)
+    voxel = 0.05
+    kp = voxel_down(pts, voxel)
+    supports = support_clouds(pts, kp, voxel, desc.params)
+    rng = np.random.default_rng(3)
+    rot, t = random_rotation(rng), rng.uniform(-5, 5, 3)
+    a = desc.embed(extract_patches(kp, supports, voxel, desc.params))
+    moved = [s @ rot.T + t for s in supports]
+    b = desc.embed(extract_patches(kp @ rot.T + t, moved, voxel, desc.params))
+    cos = np.sum(a * b, axis=1)
+    assert cos.mean() > 0.9, f"mean cosine under rotation {cos.mean():.3f}"
+
+
+def test_wrong_input_model_gives_clear_error(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("points", TensorProto.DOUBLE, ["N", 3])
+    y = helper.make_tensor_value_info("feat", TensorProto.DOUBLE, ["N", 3])
+    graph = helper.make_graph([helper.make_node("Identity", ["points"], ["feat"])], "wrong", [x], [y])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    path = tmp_path / "wrong.onnx"
+    onnx.save(model, str(path))
+    with pytest.raises(InputError) as err:
+        OnnxDescriptor(str(path))
+    msg = str(err.value)
+    assert "contract" in msg and "'points'" in msg and "rank 2" in msg and "tensor(double)" in msg
+    assert "rank 3" in msg and "(M, 64, 3)" in msg  # what was expected
+
+
+def test_wrong_patch_size_model(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("patches", TensorProto.FLOAT, ["M", 16, 3])
+    y = helper.make_tensor_value_info("d", TensorProto.FLOAT, ["M", 3])
+    node = helper.make_node("ReduceMax", ["patches", "axes"], ["d"], keepdims=0)
+    axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
+    graph = helper.make_graph([node], "k16", [x], [y], initializer=[axes])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    path = tmp_path / "k16.onnx"
+    onnx.save(model, str(path))
+    with pytest.raises(InputError, match="K = 16, the patch size is 64"):
+        OnnxDescriptor(str(path))
+    assert OnnxDescriptor(str(path), k=16).params.k == 16  # an explicit override makes it fit
+
+
+def test_missing_model_path(tmp_path):
+    with pytest.raises(InputError, match="not found.*descriptors.train"):
+        OnnxDescriptor(str(tmp_path / "nope.onnx"))
+    with pytest.raises(InputError, match="not found"):
+        OnnxDescriptor("descriptors/does_not_exist.onnx")
+
+
+def test_relative_model_path_from_other_cwd(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    d = OnnxDescriptor(DEFAULT_MODEL)
+    assert d.model_path == MODEL
+
+
+def test_correspondences_on_small_pair(desc):
+    rng = np.random.default_rng(5)
+    src = toy_room(2)
+    gt = np.eye(4)
+    gt[:3, :3], gt[:3, 3] = random_rotation(rng), rng.uniform(-1, 1, 3)
+    tgt = toy_room(2)[rng.permutation(len(src))[: int(0.8 * len(src))]]  # resampled, 80 % of the points
+    tgt = tgt @ gt[:3, :3].T + gt[:3, 3] + rng.normal(scale=0.003, size=tgt.shape)
+    pair = Pair(name="toy", gt=gt, src_cloud=src, tgt_cloud=tgt, voxel_size=0.05)
+    d = OnnxDescriptor(max_correspondences=300)
+    corr = d(pair, np.random.default_rng(0))
+    assert isinstance(corr, Correspondences) and corr.labels is not None
+    assert len(corr) == 300 and corr.scores is not None
+    assert corr.inlier_ratio > 0.05
+    again = d(pair, np.random.default_rng(0))
+    np.testing.assert_array_equal(corr.src, again.src)  # seeded
+    mutual = OnnxDescriptor(mutual=True, max_correspondences=0)(pair, np.random.default_rng(0))
+    assert 0 < len(mutual) and mutual.inlier_ratio >= corr.inlier_ratio
+    assert d.name == "fcgf" and d.graph_key == "fcgf"
+
+
+def test_pair_without_clouds(desc):
+    with pytest.raises(InputError, match="needs both point clouds"):
+        desc(Pair(name="x"), np.random.default_rng(0))
+
+
+def test_runtime_path_does_not_import_torch():
+    code = (
+        "import sys; from fastmac_exp.descriptors.onnx_descriptor import OnnxDescriptor; "
+        "OnnxDescriptor(); assert 'torch' not in sys.modules, 'torch imported'"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=repo_root())
+
+
+def test_config_instantiates():
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.to_container(OmegaConf.load(repo_root() / "conf" / "descriptor" / "fcgf.yaml"))
+    assert cfg.pop("graph_key") == "fcgf"
+    d = instantiate(cfg)
+    assert isinstance(d, OnnxDescriptor) and d.graph_key == "fcgf" and d.max_correspondences == 5000
