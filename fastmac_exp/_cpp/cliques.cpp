@@ -136,13 +136,17 @@ class Worker {
         W_ = (nl + 63) / 64;
         Wp_ = (np + 63) / 64;
         for (int k = 0; k < nl; ++k) loc_[L_[k]] = k;
+        // Local adjacency from the rows of P only: P-P bits both ways, P-X bits into both rows. X-X bits
+        // are never read (pivots count neighbours in P; X is only ever intersected with rows of P).
         adj_.assign((size_t)nl * W_, 0);
-        for (int k = 0; k < nl; ++k) {
+        for (int k = 0; k < np; ++k) {
             uint64_t *row = adj_.data() + (size_t)k * W_;
             const int32_t u = L_[k];
             for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
                 const int32_t x = loc_[g_.col[p]];
-                if (x >= 0) row[x >> 6] |= uint64_t(1) << (x & 63);
+                if (x < 0) continue;
+                row[x >> 6] |= uint64_t(1) << (x & 63);
+                if (x >= np) adj_[(size_t)x * W_ + (k >> 6)] |= uint64_t(1) << (k & 63);
             }
         }
         for (int k = 0; k < nl; ++k) loc_[L_[k]] = -1;

@@ -203,15 +203,46 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     std::vector<double>().swap(G);
     t0 = Clock::now();
     const int64_t nc = (int64_t)cliques.size();
+    // w_C = sum over b of sum over a < b of G_ab (members ascending). In canonical order consecutive
+    // cliques often share a prefix; the partial sums over the shared prefix are reused, which gives
+    // exactly the sum computed from scratch (same terms, same order).
     std::vector<double> cw(nc);
-    parallel_for(0, nc, nthreads, 1024, [&](int64_t c, int) {
-        const int32_t *m = cliques.begin(c);
-        const size_t k = cliques.len(c);
-        double s = 0.0;
-        for (size_t a = 0; a < k; ++a)
-            for (size_t b = a + 1; b < k; ++b) s += adj_lookup(cg, cgw, m[a], m[b]);
-        cw[c] = s;
-    });
+    {
+        DynamicRange chunks(0, nc, 1024);
+        parallel_region(nthreads, [&](int) {
+            std::vector<double> partial;  // partial[b] = sum of the pairs with the later member <= b
+            int64_t lo, hi;
+            while (chunks.next(lo, hi)) {
+                const int32_t *prev = nullptr;
+                size_t prev_len = 0;
+                for (int64_t c = lo; c < hi; ++c) {
+                    const int32_t *m = cliques.begin(c);
+                    const size_t k = cliques.len(c);
+                    size_t shared = 0;
+                    while (shared < k && shared < prev_len && m[shared] == prev[shared]) ++shared;
+                    if (partial.size() < k) partial.resize(k);
+                    double s = shared >= 1 ? partial[shared - 1] : 0.0;
+                    if (shared == 0) partial[0] = 0.0;
+                    for (size_t b = std::max<size_t>(shared, 1); b < k; ++b) {
+                        // members m[0..b) are all neighbours of m[b] below it: search row m[b] forward
+                        const int32_t *row = cg.col.data() + cg.ptr[m[b]];
+                        const int32_t *end = cg.col.data() + cg.ptr[m[b] + 1];
+                        for (size_t a = 0; a < b; ++a) {
+                            // galloping search from the previous hit (the members ascend)
+                            int64_t step = 1;
+                            while (row + step < end && row[step] < m[a]) step *= 2;
+                            row = std::lower_bound(row + step / 2, std::min(row + step + 1, end), m[a]);
+                            s += cgw[row - cg.col.data()];
+                        }
+                        partial[b] = s;
+                    }
+                    cw[c] = s;
+                    prev = m;
+                    prev_len = k;
+                }
+            }
+        });
+    }
     std::vector<double> best_w(n, 0.0);
     std::vector<int64_t> owner(n, -1);
     for (int64_t c = 0; c < nc; ++c) {
