@@ -12,7 +12,13 @@ from fastmac_exp.backends.base import Backend
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.metrics import pose_errors
-from fastmac_exp.params import MacParams, mac_params_for
+from fastmac_exp.params import (
+    INLIER_THRESHOLD,
+    SUCCESS_THRESHOLDS,
+    MacParams,
+    check_family,
+    mac_params_for,
+)
 from fastmac_exp.samplers import NoSampler, Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -87,9 +93,20 @@ def register(
     else:
         if target is None:
             raise InputError("register(source, target): a target cloud is needed when source is a cloud")
-        from fastmac_exp.datasets.user_pairs import default_pair
+        from fastmac_exp.datasets.user_pairs import DEFAULT_VOXEL
+        from fastmac_exp.io import clean_cloud
 
-        pair = default_pair(np.asarray(source), np.asarray(target), family=family, voxel_size=voxel_size)
+        re_max, te_max = SUCCESS_THRESHOLDS[check_family(family)]
+        pair = Pair(
+            name="register",
+            family=family,
+            src_cloud=clean_cloud(np.asarray(source, dtype=np.float64), "source cloud")[0],
+            tgt_cloud=clean_cloud(np.asarray(target, dtype=np.float64), "target cloud")[0],
+            voxel_size=voxel_size or DEFAULT_VOXEL[family],
+            inlier_threshold=INLIER_THRESHOLD[family],
+            re_thresh_deg=re_max,
+            te_thresh_m=te_max,
+        )
         if descriptor is None:
             from fastmac_exp.descriptors.fpfh import FPFHDescriptor
 

@@ -50,3 +50,13 @@ def test_fastmac_highpass_20_percent_recovers_gt(pair_id, backend):
     out = run_pair(pair, FPFHDescriptor(), make_sampler("highpass"), backend, 0.2, np.random.default_rng(0))
     assert out.row["success"], (pair_id, out.row["re_deg"], out.row["te_cm"])
     assert out.row["n_kept"] == int(out.row["n_in"] * 0.2)
+
+
+def test_library_register_on_two_clouds():
+    import fastmac_exp
+    from fastmac_exp.metrics import pose_errors
+
+    pair = _pair(INDOOR[1])
+    res = fastmac_exp.register(pair.src_cloud, pair.tgt_cloud, family="3dmatch", voxel_size=0.05, ratio=0.2)
+    assert pose_errors(res.pose, pair.gt, 15, 0.3).success
+    assert {"describe", "sampling", "graph", "cliques", "selection", "pose", "total"} <= set(res.timings)

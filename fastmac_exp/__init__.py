@@ -1,0 +1,31 @@
+"""fastmac-exp: FastMAC graph-signal sampling + MAC maximal-clique registration, with an experiment shell.
+
+Library use (no Hydra needed):
+
+    import fastmac_exp
+    result = fastmac_exp.register(src_xyz, tgt_xyz, family="3dmatch", voxel_size=0.05, ratio=0.2)
+    result.pose        # 4x4, maps the source into the target
+    result.timings     # ms per stage: describe, sampling, graph, cliques, selection, pose, total
+"""
+
+from fastmac_exp.errors import BackendUnavailable, FastMacError, InputError, RegistrationFailed
+from fastmac_exp.params import GraphParams, MacParams, mac_params_for
+from fastmac_exp.pipeline import register, register_correspondences
+from fastmac_exp.types import Correspondences, Pair, RegistrationResult
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BackendUnavailable",
+    "Correspondences",
+    "FastMacError",
+    "GraphParams",
+    "InputError",
+    "MacParams",
+    "Pair",
+    "RegistrationFailed",
+    "RegistrationResult",
+    "mac_params_for",
+    "register",
+    "register_correspondences",
+]
