@@ -16,6 +16,7 @@ import pandas as pd
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
@@ -47,6 +48,13 @@ class Components:
         self.sampler = instantiate(_strip(cfg.sampler))
         self.backend = instantiate(_strip(cfg.backend))
         self.cfg = cfg
+        cache_cfg = cfg.get("cache") or {}
+        self.cache = CorrespondenceCache(cache_cfg.get("dir"), bool(cache_cfg.get("correspondences", False)))
+        self._cache_parts = {
+            "dataset": ds_cfg,
+            "descriptor": OmegaConf.to_container(cfg.descriptor, resolve=True),
+            "seed": int(cfg.seed),
+        }
         self.labels = {
             "dataset": _choice(cfg, "dataset", getattr(self.dataset, "name", "dataset")),
             "descriptor": _choice(cfg, "descriptor", getattr(self.descriptor, "name", "descriptor")),
@@ -100,6 +108,8 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
             graph_overrides=OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None,
             mac_overrides=OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None,
             row=row,
+            cache=comp.cache,
+            cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
         )
         return outcome
     except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run

@@ -93,3 +93,30 @@ def test_none_sampler_records_ratio_one(tmp_path):
     table, _ = run_experiment(cfg, tmp_path / "run")
     assert (table["ratio"] == 1.0).all() and (table["n_kept"] == table["n_in"]).all()
     assert NoSampler().name == "none"
+
+
+def test_correspondence_cache_changes_no_result(tmp_path):
+    from fastmac_exp.cache import CorrespondenceCache
+    from fastmac_exp.descriptors.oracle import OracleDescriptor
+    from fastmac_exp.pipeline import run_pair
+    from fastmac_exp.types import Pair
+
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(0, 3, (3000, 3))
+    pair = Pair(name="p", gt=np.eye(4), src_cloud=cloud, tgt_cloud=cloud + 0.0)
+    cache = CorrespondenceCache(tmp_path / "cache")
+    desc = OracleDescriptor(num_correspondences=400, inlier_ratio=0.2)
+    args = (pair, desc, GraphFilterSampler(impl="python"), PythonBackend(), 0.5)
+    first = run_pair(*args, np.random.default_rng([0, 1]), cache=cache, cache_key="k")
+    second = run_pair(*args, np.random.default_rng([0, 1]), cache=cache, cache_key="k")
+    plain = run_pair(*args, np.random.default_rng([0, 1]))
+    assert second.row.get("describe_cached") and not first.row.get("describe_cached")
+    for out in (second, plain):
+        assert out.row["pose"] == first.row["pose"] and out.row["n_kept"] == first.row["n_kept"]
+        np.testing.assert_array_equal(out.result.kept, first.result.kept)
+    assert second.row["t_describe_ms"] == first.row["t_describe_ms"]
+    # a corrupted entry is recomputed, not trusted
+    entry = next((tmp_path / "cache").rglob("*.npz"))
+    entry.write_bytes(b"garbage")
+    third = run_pair(*args, np.random.default_rng([0, 1]), cache=cache, cache_key="k")
+    assert not third.row.get("describe_cached") and third.row["pose"] == first.row["pose"]
