@@ -124,21 +124,21 @@ def synthetic_rows(family: str, n: int, seed: int, label: str, **kwargs) -> list
 def summarize(rows: list[dict]) -> None:
     print("\nPer pair")
     print(
-        f"| {'group':30s} | {'pair':38s} | {'N corr':>6s} | {'inlier ratio':>12s} | {'overlap':>7s} "
+        f"| {'group':40s} | {'pair':38s} | {'N corr':>6s} | {'inlier ratio':>12s} | {'overlap':>7s} "
         f"| {'GT rot deg':>10s} | {'GT trans m':>10s} |"
     )
-    print(f"|{'-' * 32}|{'-' * 40}|{'-' * 8}|{'-' * 14}|{'-' * 9}|{'-' * 12}|{'-' * 12}|")
+    print(f"|{'-' * 42}|{'-' * 40}|{'-' * 8}|{'-' * 14}|{'-' * 9}|{'-' * 12}|{'-' * 12}|")
     for r in rows:
         print(
-            f"| {r['group']:30s} | {r['pair']:38s} | {r['n']:6d} | {r['ir']:12.4f} | {r['overlap']:7.3f} "
+            f"| {r['group']:40s} | {r['pair']:38s} | {r['n']:6d} | {r['ir']:12.4f} | {r['overlap']:7.3f} "
             f"| {r['rot']:10.1f} | {r['trans']:10.2f} |"
         )
     print("\nDistributions (FPFH inlier ratio under GT; overlap = fraction of source points near the target)")
     print(
-        f"| {'group':30s} | {'pairs':>5s} | {'IR min':>7s} | {'IR median':>9s} | {'IR max':>7s} "
+        f"| {'group':40s} | {'pairs':>5s} | {'IR min':>7s} | {'IR median':>9s} | {'IR max':>7s} "
         f"| {'IR mean':>7s} | {'overlap median':>14s} | {'gen s/pair':>10s} | {'fpfh s/pair':>11s} |"
     )
-    print(f"|{'-' * 32}|{'-' * 7}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 9}|{'-' * 16}|{'-' * 12}|{'-' * 13}|")
+    print(f"|{'-' * 42}|{'-' * 7}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 9}|{'-' * 16}|{'-' * 12}|{'-' * 13}|")
     groups = list(dict.fromkeys(r["group"] for r in rows))
     for g in groups:
         rs = [r for r in rows if r["group"] == g]
@@ -148,7 +148,7 @@ def summarize(rows: list[dict]) -> None:
         fp = np.mean([r["fpfh_s"] for r in rs])
         gen_s = "-" if np.isnan(gen) else f"{gen:.2f}"
         print(
-            f"| {g:30s} | {len(rs):5d} | {ir.min():7.4f} | {np.median(ir):9.4f} | {ir.max():7.4f} "
+            f"| {g:40s} | {len(rs):5d} | {ir.min():7.4f} | {np.median(ir):9.4f} | {ir.max():7.4f} "
             f"| {ir.mean():7.4f} | {np.median(ov):14.3f} | {gen_s:>10s} | {fp:11.2f} |"
         )
 
