@@ -281,6 +281,25 @@ def test_clique_caps_are_recorded():
     assert res.cap_hit == "max_cliques=2" and res.n_cliques == 2
 
 
+@pytest.mark.parametrize("seed", range(12))
+def test_node_guided_selection_equals_reference_with_ties(seed):
+    """Integer weights make many cliques exactly as heavy: ties go to the canonically earliest clique."""
+    python_mac = pytest.importorskip("fastmac_exp.backends.python_mac")
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 120))
+    i, j = er_edges(n, float(rng.uniform(0.05, 0.4)), seed)
+    w = rng.integers(1, 4, len(i)).astype(float)
+    g = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
+    cliques = python_mac.canonical_cliques(
+        igraph.Graph(n=n, edges=list(zip(i.tolist(), j.tolist()))).maximal_cliques(min=3)
+    )
+    want = [tuple(c) for c in python_mac.select_cliques(cliques, g, n)]
+    for threads in (1, 2):
+        got, n_cliques = core.select_cliques(n, i, j, w, 3, num_threads=threads)
+        assert n_cliques == len(cliques)
+        assert [tuple(c.tolist()) for c in got] == want
+
+
 # ---------------------------------------------------------------------------------------------------
 # poses and MAC
 

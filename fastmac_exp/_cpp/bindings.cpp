@@ -153,6 +153,31 @@ nb::tuple maximal_cliques(int64_t n, const Indices &i, const Indices &j, int min
     return nb::make_tuple(clique_list(cl), cap_hit);
 }
 
+nb::tuple select_cliques(int64_t n, const Indices &i, const Indices &j, const Weights &w, int min_size,
+                         int num_threads) {
+    const int64_t m = (int64_t)i.shape(0);
+    if ((int64_t)j.shape(0) != m || (int64_t)w.shape(0) != m)
+        throw std::invalid_argument("i, j and w must have the same length");
+    fastmac::CliqueList sel;
+    int64_t n_cliques = 0;
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::AdjGraph g = fastmac::adj_from_edges(n, i.data(), j.data(), m);
+        // weights onto the sorted rows (duplicates: the last one given wins)
+        std::vector<double> vals(g.col.size(), 0.0);
+        for (int64_t e = 0; e < m; ++e) {
+            const int64_t a = i.data()[e], b = j.data()[e];
+            if (a == b) continue;
+            for (auto [x, y] : {std::pair<int64_t, int64_t>{a, b}, {b, a}}) {
+                auto first = g.col.begin() + g.ptr[x], last = g.col.begin() + g.ptr[x + 1];
+                vals[std::lower_bound(first, last, (int32_t)y) - g.col.begin()] = w.data()[e];
+            }
+        }
+        sel = fastmac::node_guided_selection(g, vals, min_size, n_cliques, num_threads);
+    }
+    return nb::make_tuple(clique_list(sel), n_cliques);
+}
+
 nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
              double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
              int64_t max_cliques, double time_limit_s, int num_threads, bool return_selected) {
@@ -240,6 +265,9 @@ NB_MODULE(_mac_core, m) {
           "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "max_cliques"_a = 0,
           "time_limit_s"_a = 0.0, "num_threads"_a = 0, "return_selected"_a = false,
           "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order.");
+    m.def("select_cliques", &select_cliques, "n"_a, "i"_a, "j"_a, "w"_a, "min_size"_a = 3, "num_threads"_a = 0,
+          "Node-guided clique selection (spec 4) on the maximal cliques of the graph with edge weights w: "
+          "(the selected cliques in hypothesis order, the number of maximal cliques).");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },

@@ -119,9 +119,10 @@ struct Shared {
 
 class Worker {
    public:
-    Worker(const AdjGraph &g, int min_size, Shared &sh) : g_(g), min_size_(min_size), sh_(sh), loc_(g.n, -1) {}
+    Worker(const AdjGraph &g, int min_size, Shared &sh, CliqueSink &sink, int tid)
+        : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1) {}
 
-    CliqueList out;
+    int64_t delivered = 0;
 
     void run_root(int32_t v, const std::vector<int32_t> &rank) {
         const int32_t rv = rank[v];
@@ -165,6 +166,8 @@ class Worker {
     const AdjGraph &g_;
     const int min_size_;
     Shared &sh_;
+    CliqueSink &sink_;
+    const int tid_;
     std::vector<int32_t> loc_, L_, R_;
     std::vector<uint64_t> adj_;
     std::vector<std::vector<uint64_t>> levels_;  // per depth: P | X | candidates
@@ -206,8 +209,8 @@ class Worker {
         tmp_.push_back(root_);
         for (int32_t r : R_) tmp_.push_back(L_[r]);
         std::sort(tmp_.begin(), tmp_.end());
-        out.data.insert(out.data.end(), tmp_.begin(), tmp_.end());
-        out.off.push_back((int64_t)out.data.size());
+        sink_.add(tid_, tmp_.data(), tmp_.size());
+        ++delivered;
     }
 
     void expand(int depth) {
@@ -272,12 +275,12 @@ class Worker {
 
 }  // namespace
 
-CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                           int nthreads) {
+int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
+                                  int nthreads, CliqueSink &sink) {
     cap_hit.clear();
     if (min_size < 1) min_size = 1;
     nthreads = resolve_threads(nthreads, g.n);
-    // With a count cap, run serially so that the partial list is reproducible.
+    // With a count cap, run serially so that the partial set is reproducible.
     if (caps.max_cliques > 0) nthreads = 1;
     const int64_t n = g.n;
     const std::vector<int32_t> order = degeneracy_order(g);
@@ -293,15 +296,16 @@ CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &ca
                           std::chrono::duration<double>(caps.time_limit_s));
     }
 
-    std::vector<CliqueList> parts(nthreads);
+    sink.start(nthreads);
+    std::vector<int64_t> counts(nthreads, 0);
     DynamicRange roots(0, n, 4);
     parallel_region(nthreads, [&](int tid) {
-        Worker wk(g, min_size, sh);
+        Worker wk(g, min_size, sh, sink, tid);
         int64_t lo, hi;
         while (!sh.stop.load(std::memory_order_relaxed) && roots.next(lo, hi))
             for (int64_t i = lo; i < hi && !sh.stop.load(std::memory_order_relaxed); ++i)
                 wk.run_root(order[i], rank);
-        parts[tid] = std::move(wk.out);
+        counts[tid] = wk.delivered;
     });
 
     if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);
@@ -310,6 +314,32 @@ CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &ca
         std::snprintf(buf, sizeof buf, "time_limit=%gs", caps.time_limit_s);
         cap_hit = buf;
     }
+    int64_t total = 0;
+    for (int64_t c : counts) total += c;
+    return total;
+}
+
+namespace {
+
+// Keeps every clique, per thread.
+class StoreSink : public CliqueSink {
+   public:
+    std::vector<CliqueList> parts;
+    void start(int nthreads) override { parts.assign(nthreads, CliqueList()); }
+    void add(int tid, const int32_t *m, size_t k) override {
+        CliqueList &out = parts[tid];
+        out.data.insert(out.data.end(), m, m + k);
+        out.off.push_back((int64_t)out.data.size());
+    }
+};
+
+}  // namespace
+
+CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
+                           int nthreads) {
+    StoreSink sink;
+    enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
+    std::vector<CliqueList> &parts = sink.parts;
 
     // Canonical order: lexicographic over the (ascending) member lists.
     struct Ref {

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <ctime>
 #include <functional>
+#include <memory>
 
 #include "mac_core.hpp"
 #include "parallel.hpp"
@@ -69,6 +70,120 @@ double otsu(const std::vector<double> &cc) {
     return best_i < 0 ? dflt : best_i * (hi - lo) / 100.0;
 }
 
+// Node-guided clique selection (spec 4) while the cliques are found, so that they need not be stored.
+//
+// The reference walks the cliques in canonical order and gives node k clique C when w_C > best_w[k]
+// (strictly, starting from 0). Node k thus ends with the heaviest clique containing it, the earliest in
+// canonical (lexicographic) order among equally heavy ones, provided its weight is > 0. That rule does
+// not depend on the order the cliques arrive in, so each thread keeps its own per-node choice and the
+// choices are merged by the same rule: the result is the reference's, whatever the thread count.
+// Memory: only cliques that were some node's choice at some point are kept.
+class SelectSink : public CliqueSink {
+   public:
+    SelectSink(const AdjGraph &cg, const std::vector<double> &cgw) : cg_(cg), cgw_(cgw) {}
+
+    void start(int nthreads) override {
+        threads_.clear();
+        threads_.resize(nthreads);
+        for (auto &t : threads_) {
+            t.best_w.assign(cg_.n, 0.0);
+            t.best.assign(cg_.n, Ref{nullptr, 0});
+        }
+    }
+
+    void add(int tid, const int32_t *m, size_t k) override {
+        Thread &t = threads_[tid];
+        const double w = weight(m, k);
+        const int32_t *stored = nullptr;
+        for (size_t a = 0; a < k; ++a) {
+            const int32_t v = m[a];
+            if (better(w, m, k, t.best_w[v], t.best[v])) {
+                if (!stored) stored = t.store(m, k);
+                t.best_w[v] = w;
+                t.best[v] = Ref{stored, k};
+            }
+        }
+    }
+
+    // The hypotheses: each chosen clique once, at its smallest owner, in node order.
+    CliqueList finish() const {
+        const int64_t n = cg_.n;
+        std::vector<Ref> owner(n, Ref{nullptr, 0});
+        for (int64_t v = 0; v < n; ++v) {
+            double bw = 0.0;
+            for (const Thread &t : threads_)
+                if (t.best[v].p && better(t.best_w[v], t.best[v].p, t.best[v].k, bw, owner[v])) {
+                    bw = t.best_w[v];
+                    owner[v] = t.best[v];
+                }
+        }
+        // Every clique is delivered once, so equal cliques are the same stored copy: compare pointers.
+        CliqueList out;
+        std::vector<char> done(n, 0);
+        for (int64_t v = 0; v < n; ++v) {
+            const Ref r = owner[v];
+            if (!r.p || done[v]) continue;
+            out.data.insert(out.data.end(), r.p, r.p + r.k);
+            out.off.push_back((int64_t)out.data.size());
+            for (size_t a = 0; a < r.k; ++a)
+                if (owner[r.p[a]].p == r.p) done[r.p[a]] = 1;
+        }
+        return out;
+    }
+
+   private:
+    struct Ref {
+        const int32_t *p;
+        size_t k;
+    };
+    struct Thread {
+        std::vector<double> best_w;
+        std::vector<Ref> best;
+        std::vector<std::unique_ptr<int32_t[]>> blocks;  // stored cliques; blocks never move
+        size_t used = 0, cap = 0;
+        const int32_t *store(const int32_t *m, size_t k) {
+            if (used + k > cap) {
+                cap = std::max<size_t>(size_t(1) << 16, k);
+                blocks.emplace_back(new int32_t[cap]);
+                used = 0;
+            }
+            int32_t *dst = blocks.back().get() + used;
+            std::copy(m, m + k, dst);
+            used += k;
+            return dst;
+        }
+    };
+
+    // Does clique (w, m) beat the current choice (bw, b)? Heavier wins; equal weight: the
+    // lexicographically smaller clique (the earlier in canonical order). Weight 0 never wins.
+    static bool better(double w, const int32_t *m, size_t k, double bw, const Ref &b) {
+        if (w > bw) return true;
+        if (w < bw || !(w > 0.0) || !b.p) return false;
+        return std::lexicographical_compare(m, m + k, b.p, b.p + b.k);
+    }
+
+    // w_C = sum over b of sum over a < b of G_ab (members ascending), from the clique graph.
+    double weight(const int32_t *m, size_t k) const {
+        double s = 0.0;
+        for (size_t b = 1; b < k; ++b) {
+            // m[0..b) are all neighbours of m[b] below it: search row m[b] forward, galloping
+            const int32_t *row = cg_.col.data() + cg_.ptr[m[b]];
+            const int32_t *end = cg_.col.data() + cg_.ptr[m[b] + 1];
+            for (size_t a = 0; a < b; ++a) {
+                int64_t step = 1;
+                while (row + step < end && row[step] < m[a]) step *= 2;
+                row = std::lower_bound(row + step / 2, std::min(row + step + 1, end), m[a]);
+                s += cgw_[row - cg_.col.data()];
+            }
+        }
+        return s;
+    }
+
+    const AdjGraph &cg_;
+    const std::vector<double> &cgw_;
+    std::vector<Thread> threads_;
+};
+
 }  // namespace
 
 Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) {
@@ -125,6 +240,14 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
     out.total = pair_sum > 0 ? tri_sum / pair_sum : 0.0;
     out.otsu = n > 0 ? otsu(out.cc) : 0.0;
     return out;
+}
+
+CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size,
+                                 int64_t &n_cliques, int nthreads) {
+    SelectSink sink(g, vals);
+    std::string cap_hit;
+    n_cliques = enumerate_maximal_cliques(g, min_size, CliqueCaps(), cap_hit, nthreads, sink);
+    return sink.finish();
 }
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads) {
@@ -189,87 +312,23 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         }
         cg.ptr[i + 1] = (int64_t)cg.col.size();
     }
+    // The weights need only the clique graph from here on: free W and G before the search.
+    W = Csr();
+    std::vector<double>().swap(G);
     CliqueCaps caps;
     caps.max_cliques = p.max_cliques;
     caps.time_limit_s = p.time_limit_s;
-    CliqueList cliques = maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads);
+    SelectSink sink(cg, cgw);
+    res.n_cliques = enumerate_maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads, sink);
     res.t_cliques = ms_since(t0);
-    res.n_cliques = (int64_t)cliques.size();
-    if (cliques.size() == 0)
+    if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));
 
-    // ---- node-guided selection (spec 4) with the un-reduced G
-    W = Csr();  // the clique graph carries the values still needed; free the rest
-    std::vector<double>().swap(G);
+    // ---- node-guided selection (spec 4): merge the per-thread choices, deduplicate by first owner
     t0 = Clock::now();
-    const int64_t nc = (int64_t)cliques.size();
-    // w_C = sum over b of sum over a < b of G_ab (members ascending). In canonical order consecutive
-    // cliques often share a prefix; the partial sums over the shared prefix are reused, which gives
-    // exactly the sum computed from scratch (same terms, same order).
-    std::vector<double> cw(nc);
-    {
-        DynamicRange chunks(0, nc, 1024);
-        parallel_region(nthreads, [&](int) {
-            std::vector<double> partial;  // partial[b] = sum of the pairs with the later member <= b
-            int64_t lo, hi;
-            while (chunks.next(lo, hi)) {
-                const int32_t *prev = nullptr;
-                size_t prev_len = 0;
-                for (int64_t c = lo; c < hi; ++c) {
-                    const int32_t *m = cliques.begin(c);
-                    const size_t k = cliques.len(c);
-                    size_t shared = 0;
-                    while (shared < k && shared < prev_len && m[shared] == prev[shared]) ++shared;
-                    if (partial.size() < k) partial.resize(k);
-                    double s = shared >= 1 ? partial[shared - 1] : 0.0;
-                    if (shared == 0) partial[0] = 0.0;
-                    for (size_t b = std::max<size_t>(shared, 1); b < k; ++b) {
-                        // members m[0..b) are all neighbours of m[b] below it: search row m[b] forward
-                        const int32_t *row = cg.col.data() + cg.ptr[m[b]];
-                        const int32_t *end = cg.col.data() + cg.ptr[m[b] + 1];
-                        for (size_t a = 0; a < b; ++a) {
-                            // galloping search from the previous hit (the members ascend)
-                            int64_t step = 1;
-                            while (row + step < end && row[step] < m[a]) step *= 2;
-                            row = std::lower_bound(row + step / 2, std::min(row + step + 1, end), m[a]);
-                            s += cgw[row - cg.col.data()];
-                        }
-                        partial[b] = s;
-                    }
-                    cw[c] = s;
-                    prev = m;
-                    prev_len = k;
-                }
-            }
-        });
-    }
-    std::vector<double> best_w(n, 0.0);
-    std::vector<int64_t> owner(n, -1);
-    for (int64_t c = 0; c < nc; ++c) {
-        const int32_t *m = cliques.begin(c);
-        for (size_t a = 0; a < cliques.len(c); ++a)
-            if (cw[c] > best_w[m[a]]) {
-                best_w[m[a]] = cw[c];
-                owner[m[a]] = c;
-            }
-    }
-    std::vector<int64_t> selected;
-    {
-        std::vector<char> seen(nc, 0);
-        for (int64_t i = 0; i < n; ++i) {
-            const int64_t c = owner[i];
-            if (c >= 0 && !seen[c]) {
-                seen[c] = 1;
-                selected.push_back(c);
-            }
-        }
-    }
+    CliqueList selected = sink.finish();
     res.n_selected = (int64_t)selected.size();
-    if (p.return_selected)
-        for (int64_t c : selected) {
-            res.selected.data.insert(res.selected.data.end(), cliques.begin(c), cliques.begin(c) + cliques.len(c));
-            res.selected.off.push_back((int64_t)res.selected.data.size());
-        }
+    if (p.return_selected) res.selected = selected;
     res.t_selection = ms_since(t0);
 
     // ---- hypotheses, scores, refinement (spec 5)
@@ -287,8 +346,7 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         std::vector<uint8_t> scratch;
         int64_t lo, hi;
         while (hyps.next(lo, hi)) for (int64_t h = lo; h < hi; ++h) {
-            const int64_t c = selected[h];
-            const Pose T = kabsch(src, tgt, cliques.begin(c), (int64_t)cliques.len(c), nullptr);
+            const Pose T = kabsch(src, tgt, selected.begin(h), (int64_t)selected.len(h), nullptr);
             const double s = scorer.score(T, scratch);
             if (s > t_score[tid]) {
                 t_score[tid] = s;
@@ -304,10 +362,9 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         }
     }
     if (best_h < 0 || !(best_score > 0.0)) throw RegistrationFailed("no hypothesis has a positive score");
-    const int64_t bc = selected[best_h];
     res.score = best_score;
-    res.clique.assign(cliques.begin(bc), cliques.begin(bc) + cliques.len(bc));
-    res.pose_unrefined = kabsch(src, tgt, cliques.begin(bc), (int64_t)cliques.len(bc), nullptr);
+    res.clique.assign(selected.begin(best_h), selected.begin(best_h) + selected.len(best_h));
+    res.pose_unrefined = kabsch(src, tgt, selected.begin(best_h), (int64_t)selected.len(best_h), nullptr);
 
     Pose pose = res.pose_unrefined;
     std::vector<double> e(n);

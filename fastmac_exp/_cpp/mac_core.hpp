@@ -96,9 +96,23 @@ struct CliqueCaps {
     double time_limit_s = 0.0;  // 0 = no limit
 };
 
-// Every maximal clique of size >= min_size (Bron-Kerbosch with pivoting in degeneracy order,
-// Eppstein-Loeffler-Strash), members ascending, list in lexicographic (canonical) order.
-// When a cap stops the search, cap_hit names it and the partial list is returned.
+// Receives the maximal cliques as they are found: members ascending, from thread tid (0 .. nthreads-1),
+// in no particular order. Each maximal clique is delivered exactly once.
+class CliqueSink {
+   public:
+    virtual ~CliqueSink() = default;
+    virtual void start(int nthreads) = 0;  // before the search
+    virtual void add(int tid, const int32_t *members, size_t k) = 0;
+};
+
+// Bron-Kerbosch with pivoting, run from each vertex in degeneracy order (Eppstein-Loeffler-Strash),
+// over every maximal clique of size >= min_size. Returns how many were delivered; when a cap stops the
+// search, cap_hit names it. With max_cliques the search runs serially (a reproducible partial set).
+int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
+                                  int nthreads, CliqueSink &sink);
+
+// Every maximal clique of size >= min_size, members ascending, the list in lexicographic (canonical)
+// order. When a cap stops the search, cap_hit names it and the partial list is returned.
 CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
                            int nthreads);
 
@@ -160,6 +174,11 @@ struct MacResult {
 };
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads);
+
+// Node-guided selection (spec 4) over the maximal cliques (size >= min_size) of a weighted graph:
+// the hypotheses' cliques in order. g: symmetric, sorted rows; vals: the weight of each entry.
+CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size,
+                                 int64_t &n_cliques, int nthreads);
 
 // Pieces of MAC, exposed for tests.
 struct Clustering {
