@@ -150,6 +150,9 @@ def run_experiment(
     cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     if cfg.protocol not in PROTOCOLS:
         raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.protocol!r}")
+    ratio = cfg.get("ratio")
+    if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
+        raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
     run_dir = Path(cfg.resume) if cfg.get("resume") else Path(run_dir)
     if cfg.get("resume") and not run_dir.is_dir():
         raise InputError(f"resume={cfg.resume}: no such run directory")

@@ -203,3 +203,18 @@ def test_deterministic_sampler_refuses_beyond_caps():
         DeterministicSampler(max_n=100).sample(corr, 0.2, gp, fam, np.random.default_rng(0))
     res = DeterministicSampler().sample(corr, 0.05, gp, fam, np.random.default_rng(0))
     assert len(set(res.indices.tolist())) == 15
+
+
+def test_torch_and_cpp_samplers_draw_the_same_samples():
+    cpp = pytest.importorskip("fastmac_exp.backends.cpp")
+    if not cpp.available():
+        pytest.skip("C++ core not built")
+    corr, _ = make_correspondences(n=500, inlier_ratio=0.1, seed=8)
+    gp, fam = _ctx()
+    a = GraphFilterSampler(impl="cpp").sample(corr, 0.1, gp, fam, np.random.default_rng(3))
+    b = GraphFilterSampler(impl="torch").sample(corr, 0.1, gp, fam, np.random.default_rng(3))
+    c = GraphFilterSampler(impl="python").sample(corr, 0.1, gp, fam, np.random.default_rng(3))
+    np.testing.assert_allclose(b.scores, a.scores, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(c.scores, a.scores, rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(a.indices, b.indices)
+    np.testing.assert_array_equal(a.indices, c.indices)

@@ -120,3 +120,12 @@ def test_correspondence_cache_changes_no_result(tmp_path):
     entry.write_bytes(b"garbage")
     third = run_pair(*args, np.random.default_rng([0, 1]), cache=cache, cache_key="k")
     assert not third.row.get("describe_cached") and third.row["pose"] == first.row["pose"]
+
+
+@pytest.mark.parametrize("ratio", [0, 1.5, -0.2, "abc"])
+def test_impossible_ratio_fails_before_any_pair(tmp_path, ratio):
+    from fastmac_exp.errors import InputError
+
+    with pytest.raises(InputError, match="config key: ratio"):
+        run_experiment(_cfg(tmp_path, ratio=ratio), tmp_path / "run")
+    assert not (tmp_path / "run" / "results.jsonl").exists()
