@@ -75,15 +75,19 @@ def test_preset_composes_with_sweeper_params(preset):
         assert value in choices, f"{preset}: {key}={value} is not a member of {sorted(choices)}"
 
 
+def _build(cfg, group: str):
+    node = OmegaConf.to_container(cfg[group], resolve=True)
+    node.pop("name", None)
+    return instantiate(node)
+
+
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_sweep_member_instantiates(preset):
     """Each combination composes, and its descriptor, sampler and backend can be built (no stray keys)."""
     for member in sweep_members(preset):
         cfg = _compose([f"+experiment={preset}", *member])
         for group in ("sampler", "backend"):
-            node = OmegaConf.to_container(cfg[group], resolve=True)
-            node.pop("name", None)
-            instantiate(node)
+            _build(cfg, group)
         assert "_target_" in cfg.descriptor
         assert 0.0 < float(cfg.ratio) <= 1.0
 
