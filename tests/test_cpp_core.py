@@ -100,6 +100,21 @@ def test_graph_edges_threads_agree_and_wrapper():
         np.testing.assert_array_equal(one[k], two[k])
 
 
+@pytest.mark.parametrize("extent", [3.0, 80.0])
+def test_pair_screens_agree(monkeypatch, extent):
+    """The generic, AVX2 and AVX-512 pair screens (picked at run time) find exactly the same edges."""
+    src, tgt, _, _ = clustered(700, 0.2, 0.01 * extent / 3, 8, extent=extent)
+    tau = 0.1 * extent / 3
+    out = {}
+    for screen in ("generic", "avx2", "avx512"):
+        monkeypatch.setenv("FASTMAC_SCREEN", screen)  # falls back where the CPU lacks the instructions
+        out[screen] = core.graph_edges(src, tgt, "quadratic", 0.06, tau, 0.9)
+    assert len(out["generic"]["i"]) > 500
+    for screen in ("avx2", "avx512"):
+        for k in "ijwg":
+            np.testing.assert_array_equal(out[screen][k], out["generic"][k])
+
+
 @pytest.mark.parametrize("self_loops", [True, False])
 @pytest.mark.parametrize("kernel,thr", [("gaussian", 0.9), ("quadratic", 0.8)])
 def test_graph_signals_equal_dense_formula(self_loops, kernel, thr):
