@@ -102,17 +102,21 @@ def test_graph_edges_threads_agree_and_wrapper():
 
 @pytest.mark.parametrize("extent", [3.0, 80.0])
 def test_pair_screens_agree(monkeypatch, extent):
-    """The generic, AVX2 and AVX-512 pair screens (picked at run time) find exactly the same edges."""
+    """The generic, AVX2 and AVX-512 screens (picked at run time) give exactly the same edges and scores."""
     src, tgt, _, _ = clustered(700, 0.2, 0.01 * extent / 3, 8, extent=extent)
     tau = 0.1 * extent / 3
-    out = {}
+    out, res = {}, {}
     for screen in ("generic", "avx2", "avx512"):
         monkeypatch.setenv("FASTMAC_SCREEN", screen)  # falls back where the CPU lacks the instructions
         out[screen] = core.graph_edges(src, tgt, "quadratic", 0.06, tau, 0.9)
+        res[screen] = core.mac(src, tgt, "quadratic", 0.06, tau, 0.9, tau)  # residual screens too
     assert len(out["generic"]["i"]) > 500
     for screen in ("avx2", "avx512"):
         for k in "ijwg":
             np.testing.assert_array_equal(out[screen][k], out["generic"][k])
+        for k in ("pose", "pose_unrefined", "clique"):
+            np.testing.assert_array_equal(res[screen][k], res["generic"][k])
+        assert res[screen]["score"] == res["generic"]["score"]
 
 
 @pytest.mark.parametrize("self_loops", [True, False])

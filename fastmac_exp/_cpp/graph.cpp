@@ -74,15 +74,17 @@ struct ScreenData {
     float k1 = 0.f, k2 = 1e-11f;
 };
 
-// Appends to cand every j in [j0, j1) that passes the screen for row i.
-using ScreenFn = void (*)(const ScreenData &, int64_t, int64_t, int64_t, std::vector<int32_t> &);
+// Writes to out (room for j1 - j0 entries) every j in [j0, j1) that passes the screen for row i, in
+// increasing order; returns how many.
+using ScreenFn = size_t (*)(const ScreenData &, int64_t, int64_t, int64_t, int32_t *);
 
 constexpr int64_t kBlock = 1024;
 
-void screen_generic(const ScreenData &S, int64_t i, int64_t j0, int64_t j1, std::vector<int32_t> &cand) {
+size_t screen_generic(const ScreenData &S, int64_t i, int64_t j0, int64_t j1, int32_t *out) {
     uint8_t flag[kBlock];
     const float pxi = S.px[i], pyi = S.py[i], pzi = S.pz[i], qxi = S.qx[i], qyi = S.qy[i], qzi = S.qz[i];
     const float k1 = S.k1, k2 = S.k2;
+    size_t cnt = 0;
     for (int64_t b0 = j0; b0 < j1; b0 += kBlock) {
         const int64_t len = std::min(kBlock, j1 - b0);
         const float *px = S.px.data() + b0, *py = S.py.data() + b0, *pz = S.pz.data() + b0;
@@ -96,20 +98,24 @@ void screen_generic(const ScreenData &S, int64_t i, int64_t j0, int64_t j1, std:
             flag[k] = (uint8_t)(diff * diff <= sum * (k1 + k2 * sum));
         }
         for (int64_t k = 0; k < len; ++k)
-            if (flag[k]) cand.push_back((int32_t)(b0 + k));
+            if (flag[k]) out[cnt++] = (int32_t)(b0 + k);
     }
+    return cnt;
 }
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
 #define FASTMAC_HAVE_AVX2_KERNEL 1
 // The same screen, 8 pairs per step, candidates taken from the comparison's bit mask.
-__attribute__((target("avx2"))) void screen_avx2(const ScreenData &S, int64_t i, int64_t j0, int64_t j1,
-                                                 std::vector<int32_t> &cand) {
+__attribute__((target("avx2"))) size_t screen_avx2(const ScreenData &S, int64_t i, int64_t j0, int64_t j1,
+                                                   int32_t *out) {
     const __m256 pxi = _mm256_set1_ps(S.px[i]), pyi = _mm256_set1_ps(S.py[i]), pzi = _mm256_set1_ps(S.pz[i]);
     const __m256 qxi = _mm256_set1_ps(S.qx[i]), qyi = _mm256_set1_ps(S.qy[i]), qzi = _mm256_set1_ps(S.qz[i]);
     const __m256 k1 = _mm256_set1_ps(S.k1), k2 = _mm256_set1_ps(S.k2);
     const float *px = S.px.data(), *py = S.py.data(), *pz = S.pz.data();
     const float *qx = S.qx.data(), *qy = S.qy.data(), *qz = S.qz.data();
+    // No call inside the loop (one would make the compiler keep the broadcast constants in memory:
+    // vector registers are caller-saved), hence the output buffer.
+    size_t cnt = 0;
     int64_t j = j0;
     for (; j + 8 <= j1; j += 8) {
         const __m256 ax = _mm256_sub_ps(_mm256_loadu_ps(px + j), pxi);
@@ -126,21 +132,23 @@ __attribute__((target("avx2"))) void screen_avx2(const ScreenData &S, int64_t i,
         const __m256 rhs = _mm256_mul_ps(sum, _mm256_add_ps(k1, _mm256_mul_ps(k2, sum)));
         int bits = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_mul_ps(diff, diff), rhs, _CMP_LE_OQ));
         while (bits) {
-            cand.push_back((int32_t)(j + __builtin_ctz(bits)));
+            out[cnt++] = (int32_t)(j + __builtin_ctz(bits));
             bits &= bits - 1;
         }
     }
-    if (j < j1) screen_generic(S, i, j, j1, cand);
+    if (j < j1) cnt += screen_generic(S, i, j, j1, out + cnt);
+    return cnt;
 }
 
 // AVX-512F: 16 pairs per step, the comparison gives the candidate mask directly.
-__attribute__((target("avx512f"))) void screen_avx512(const ScreenData &S, int64_t i, int64_t j0, int64_t j1,
-                                                     std::vector<int32_t> &cand) {
+__attribute__((target("avx512f"))) size_t screen_avx512(const ScreenData &S, int64_t i, int64_t j0, int64_t j1,
+                                                       int32_t *out) {
     const __m512 pxi = _mm512_set1_ps(S.px[i]), pyi = _mm512_set1_ps(S.py[i]), pzi = _mm512_set1_ps(S.pz[i]);
     const __m512 qxi = _mm512_set1_ps(S.qx[i]), qyi = _mm512_set1_ps(S.qy[i]), qzi = _mm512_set1_ps(S.qz[i]);
     const __m512 k1 = _mm512_set1_ps(S.k1), k2 = _mm512_set1_ps(S.k2);
     const float *px = S.px.data(), *py = S.py.data(), *pz = S.pz.data();
     const float *qx = S.qx.data(), *qy = S.qy.data(), *qz = S.qz.data();
+    size_t cnt = 0;
     int64_t j = j0;
     for (; j + 16 <= j1; j += 16) {
         const __m512 ax = _mm512_sub_ps(_mm512_loadu_ps(px + j), pxi);
@@ -157,11 +165,12 @@ __attribute__((target("avx512f"))) void screen_avx512(const ScreenData &S, int64
         const __m512 rhs = _mm512_mul_ps(sum, _mm512_add_ps(k1, _mm512_mul_ps(k2, sum)));
         unsigned bits = _mm512_cmp_ps_mask(_mm512_mul_ps(diff, diff), rhs, _CMP_LE_OQ);
         while (bits) {
-            cand.push_back((int32_t)(j + __builtin_ctz(bits)));
+            out[cnt++] = (int32_t)(j + __builtin_ctz(bits));
             bits &= bits - 1;
         }
     }
-    if (j < j1) screen_avx2(S, i, j, j1, cand);
+    if (j < j1) cnt += screen_avx2(S, i, j, j1, out + cnt);
+    return cnt;
 }
 #endif
 
@@ -232,16 +241,16 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     DynamicRange rows(0, n - 1, 16);
     parallel_region(nthreads, [&](int tid) {
         Part &part = parts[tid];
-        std::vector<int32_t> cand;
+        std::vector<int32_t> buf(n);
         int64_t lo, hi;
         while (rows.next(lo, hi))
             for (int64_t i = lo; i < hi; ++i) {
-                cand.clear();
-                screen(S, i, i + 1, n, cand);
+                const size_t n_cand = screen(S, i, i + 1, n, buf.data());
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.col.size();
                 const double *pi = src + 3 * i, *qi = tgt + 3 * i;
-                for (int32_t j : cand) {
+                for (size_t c = 0; c < n_cand; ++c) {
+                    const int32_t j = buf[c];
                     // Exact test, as the reference computes it: norms of the differences, in double.
                     const double *pj = src + 3 * (int64_t)j, *qj = tgt + 3 * (int64_t)j;
                     const double ax = pi[0] - pj[0], ay = pi[1] - pj[1], az = pi[2] - pj[2];

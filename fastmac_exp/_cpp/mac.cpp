@@ -343,7 +343,7 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     std::vector<int64_t> t_h(nthreads, -1);
     DynamicRange hyps(0, nh, 16);
     parallel_region(nthreads, [&](int tid) {
-        std::vector<uint8_t> scratch;
+        std::vector<int32_t> scratch;
         int64_t lo, hi;
         while (hyps.next(lo, hi)) for (int64_t h = lo; h < hi; ++h) {
             const Pose T = kabsch(src, tgt, selected.begin(h), (int64_t)selected.len(h), nullptr);

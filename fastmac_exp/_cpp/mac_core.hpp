@@ -134,18 +134,19 @@ Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m,
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e);
 
 // The same score, fast: residuals are screened in float32 (centred coordinates, a conservative
-// rounding margin) and only the rows that can be inliers are evaluated exactly as mae_score does,
-// in the same order, so the result equals mae_score's bit for bit.
+// rounding margin; SIMD kernels picked at run time) and only the rows that can be inliers are
+// evaluated exactly as mae_score does, in the same order, so the result equals mae_score's bit for bit.
 class Scorer {
    public:
     Scorer(const double *src, const double *tgt, int64_t n, double tau);
-    double score(const Pose &T, std::vector<uint8_t> &scratch) const;
+    double score(const Pose &T, std::vector<int32_t> &scratch) const;
 
    private:
     const double *src_, *tgt_;
     int64_t n_;
     double tau_, rp_ = 0, rq_ = 0, cp_[3] = {0, 0, 0}, cq_[3] = {0, 0, 0};
     std::vector<float> px_, py_, pz_, qx_, qy_, qz_;
+    void (*screen_)() = nullptr;  // the residual screen picked for this CPU (cast back in pose.cpp)
 };
 
 // ---------------------------------------------------------------------------------------------

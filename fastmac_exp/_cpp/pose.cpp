@@ -2,7 +2,13 @@
 // hypothesis score (spec 5.2).
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
+#include <string>
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#endif
 
 #include "mac_core.hpp"
 
@@ -150,27 +156,132 @@ double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n,
 
 namespace {
 
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
-__attribute__((target_clones("avx2", "default")))
-#endif
-void screen_residuals(const float *__restrict px, const float *__restrict py, const float *__restrict pz,
-                      const float *__restrict qx, const float *__restrict qy, const float *__restrict qz,
-                      const float *__restrict R, const float *__restrict t, float lim2, int64_t n,
-                      uint8_t *__restrict flag) {
+// Residual screens: write to out (room for n entries) every row k with |R p_k + t - q_k|^2 <= lim2 in
+// float32, in increasing order; return how many.
+struct ResidualInput {
+    const float *px, *py, *pz, *qx, *qy, *qz;
+    int64_t n;
+};
+using ResidualScreenFn = size_t (*)(const ResidualInput &, const float *, const float *, float, int32_t *);
+
+size_t screen_residuals_generic(const ResidualInput &in, const float *R, const float *t, float lim2,
+                                int32_t *out) {
+    constexpr int64_t kBlock = 512;
+    uint8_t flag[kBlock];
     const float r0 = R[0], r1 = R[1], r2 = R[2], r3 = R[3], r4 = R[4], r5 = R[5], r6 = R[6], r7 = R[7],
                 r8 = R[8], t0 = t[0], t1 = t[1], t2 = t[2];
-    for (int64_t k = 0; k < n; ++k) {
-        const float x = r0 * px[k] + r1 * py[k] + r2 * pz[k] + t0 - qx[k];
-        const float y = r3 * px[k] + r4 * py[k] + r5 * pz[k] + t1 - qy[k];
-        const float z = r6 * px[k] + r7 * py[k] + r8 * pz[k] + t2 - qz[k];
-        flag[k] = (uint8_t)(x * x + y * y + z * z <= lim2);
+    size_t cnt = 0;
+    for (int64_t b0 = 0; b0 < in.n; b0 += kBlock) {
+        const int64_t len = std::min(kBlock, in.n - b0);
+        const float *px = in.px + b0, *py = in.py + b0, *pz = in.pz + b0;
+        const float *qx = in.qx + b0, *qy = in.qy + b0, *qz = in.qz + b0;
+        for (int64_t k = 0; k < len; ++k) {
+            const float x = r0 * px[k] + r1 * py[k] + r2 * pz[k] + t0 - qx[k];
+            const float y = r3 * px[k] + r4 * py[k] + r5 * pz[k] + t1 - qy[k];
+            const float z = r6 * px[k] + r7 * py[k] + r8 * pz[k] + t2 - qz[k];
+            flag[k] = (uint8_t)(x * x + y * y + z * z <= lim2);
+        }
+        for (int64_t k = 0; k < len; ++k)
+            if (flag[k]) out[cnt++] = (int32_t)(b0 + k);
     }
+    return cnt;
+}
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define FASTMAC_HAVE_SIMD_RESIDUALS 1
+__attribute__((target("avx2,fma"))) size_t screen_residuals_avx2(const ResidualInput &in, const float *R,
+                                                                 const float *t, float lim2, int32_t *out) {
+    const __m256 r0 = _mm256_set1_ps(R[0]), r1 = _mm256_set1_ps(R[1]), r2 = _mm256_set1_ps(R[2]);
+    const __m256 r3 = _mm256_set1_ps(R[3]), r4 = _mm256_set1_ps(R[4]), r5 = _mm256_set1_ps(R[5]);
+    const __m256 r6 = _mm256_set1_ps(R[6]), r7 = _mm256_set1_ps(R[7]), r8 = _mm256_set1_ps(R[8]);
+    const __m256 t0 = _mm256_set1_ps(t[0]), t1 = _mm256_set1_ps(t[1]), t2 = _mm256_set1_ps(t[2]);
+    const __m256 l2 = _mm256_set1_ps(lim2);
+    // Locals, not in.*: the pushes into cand could otherwise alias them and force reloads.
+    const float *ipx = in.px, *ipy = in.py, *ipz = in.pz, *iqx = in.qx, *iqy = in.qy, *iqz = in.qz;
+    const int64_t n = in.n;
+    // No call inside the loop (one would make the compiler keep the broadcast constants in memory:
+    // vector registers are caller-saved), hence the output buffer.
+    size_t cnt = 0;
+    int64_t k = 0;
+    for (; k + 8 <= n; k += 8) {
+        const __m256 px = _mm256_loadu_ps(ipx + k), py = _mm256_loadu_ps(ipy + k), pz = _mm256_loadu_ps(ipz + k);
+        const __m256 x = _mm256_fmadd_ps(r0, px, _mm256_fmadd_ps(r1, py, _mm256_fmadd_ps(r2, pz,
+                                         _mm256_sub_ps(t0, _mm256_loadu_ps(iqx + k)))));
+        const __m256 y = _mm256_fmadd_ps(r3, px, _mm256_fmadd_ps(r4, py, _mm256_fmadd_ps(r5, pz,
+                                         _mm256_sub_ps(t1, _mm256_loadu_ps(iqy + k)))));
+        const __m256 z = _mm256_fmadd_ps(r6, px, _mm256_fmadd_ps(r7, py, _mm256_fmadd_ps(r8, pz,
+                                         _mm256_sub_ps(t2, _mm256_loadu_ps(iqz + k)))));
+        const __m256 e2 = _mm256_fmadd_ps(x, x, _mm256_fmadd_ps(y, y, _mm256_mul_ps(z, z)));
+        int bits = _mm256_movemask_ps(_mm256_cmp_ps(e2, l2, _CMP_LE_OQ));
+        while (bits) {
+            out[cnt++] = (int32_t)(k + __builtin_ctz(bits));
+            bits &= bits - 1;
+        }
+    }
+    if (k < n) {
+        ResidualInput tail{ipx + k, ipy + k, ipz + k, iqx + k, iqy + k, iqz + k, n - k};
+        const size_t more = screen_residuals_generic(tail, R, t, lim2, out + cnt);
+        for (size_t c = cnt; c < cnt + more; ++c) out[c] += (int32_t)k;
+        cnt += more;
+    }
+    return cnt;
+}
+
+__attribute__((target("avx512f"))) size_t screen_residuals_avx512(const ResidualInput &in, const float *R,
+                                                                  const float *t, float lim2, int32_t *out) {
+    const __m512 r0 = _mm512_set1_ps(R[0]), r1 = _mm512_set1_ps(R[1]), r2 = _mm512_set1_ps(R[2]);
+    const __m512 r3 = _mm512_set1_ps(R[3]), r4 = _mm512_set1_ps(R[4]), r5 = _mm512_set1_ps(R[5]);
+    const __m512 r6 = _mm512_set1_ps(R[6]), r7 = _mm512_set1_ps(R[7]), r8 = _mm512_set1_ps(R[8]);
+    const __m512 t0 = _mm512_set1_ps(t[0]), t1 = _mm512_set1_ps(t[1]), t2 = _mm512_set1_ps(t[2]);
+    const __m512 l2 = _mm512_set1_ps(lim2);
+    // Locals, not in.*: the pushes into cand could otherwise alias them and force reloads.
+    const float *ipx = in.px, *ipy = in.py, *ipz = in.pz, *iqx = in.qx, *iqy = in.qy, *iqz = in.qz;
+    const int64_t n = in.n;
+    // No call inside the loop (one would make the compiler keep the broadcast constants in memory:
+    // vector registers are caller-saved), hence the output buffer.
+    size_t cnt = 0;
+    int64_t k = 0;
+    for (; k + 16 <= n; k += 16) {
+        const __m512 px = _mm512_loadu_ps(ipx + k), py = _mm512_loadu_ps(ipy + k), pz = _mm512_loadu_ps(ipz + k);
+        const __m512 x = _mm512_fmadd_ps(r0, px, _mm512_fmadd_ps(r1, py, _mm512_fmadd_ps(r2, pz,
+                                         _mm512_sub_ps(t0, _mm512_loadu_ps(iqx + k)))));
+        const __m512 y = _mm512_fmadd_ps(r3, px, _mm512_fmadd_ps(r4, py, _mm512_fmadd_ps(r5, pz,
+                                         _mm512_sub_ps(t1, _mm512_loadu_ps(iqy + k)))));
+        const __m512 z = _mm512_fmadd_ps(r6, px, _mm512_fmadd_ps(r7, py, _mm512_fmadd_ps(r8, pz,
+                                         _mm512_sub_ps(t2, _mm512_loadu_ps(iqz + k)))));
+        const __m512 e2 = _mm512_fmadd_ps(x, x, _mm512_fmadd_ps(y, y, _mm512_mul_ps(z, z)));
+        unsigned bits = _mm512_cmp_ps_mask(e2, l2, _CMP_LE_OQ);
+        while (bits) {
+            out[cnt++] = (int32_t)(k + __builtin_ctz(bits));
+            bits &= bits - 1;
+        }
+    }
+    if (k < n) {
+        ResidualInput tail{ipx + k, ipy + k, ipz + k, iqx + k, iqy + k, iqz + k, n - k};
+        const size_t more = screen_residuals_generic(tail, R, t, lim2, out + cnt);
+        for (size_t c = cnt; c < cnt + more; ++c) out[c] += (int32_t)k;
+        cnt += more;
+    }
+    return cnt;
+}
+#endif
+
+ResidualScreenFn pick_residual_screen() {
+#ifdef FASTMAC_HAVE_SIMD_RESIDUALS
+    const char *env = std::getenv("FASTMAC_SCREEN");  // for tests: avx512 | avx2 | generic
+    const std::string want = env ? env : "";
+    if (want == "generic") return screen_residuals_generic;
+    if (want != "avx2" && __builtin_cpu_supports("avx512f")) return screen_residuals_avx512;
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return screen_residuals_avx2;
+#endif
+    return screen_residuals_generic;
 }
 
 }  // namespace
 
 Scorer::Scorer(const double *src, const double *tgt, int64_t n, double tau)
     : src_(src), tgt_(tgt), n_(n), tau_(tau), px_(n), py_(n), pz_(n), qx_(n), qy_(n), qz_(n) {
+    screen_ = reinterpret_cast<void (*)()>(pick_residual_screen());
     for (int64_t i = 0; i < n; ++i)
         for (int r = 0; r < 3; ++r) {
             cp_[r] += src[3 * i + r];
@@ -194,7 +305,7 @@ Scorer::Scorer(const double *src, const double *tgt, int64_t n, double tau)
     }
 }
 
-double Scorer::score(const Pose &T, std::vector<uint8_t> &flag) const {
+double Scorer::score(const Pose &T, std::vector<int32_t> &buf) const {
     // R p + t - q = R p' + t' - q' with p' = p - cp, q' = q - cq and t' = R cp + t - cq.
     float Rf[9], tf[3];
     double tc[3];
@@ -206,26 +317,21 @@ double Scorer::score(const Pose &T, std::vector<uint8_t> &flag) const {
     // Float rounding of the inputs, the products and the sums stays far below 1e-5 of the magnitudes.
     const double lim = tau_ + 1e-5 * (rp_ + rq_ + norm3(tc)) + 1e-12;
     const float lim2 = (float)(lim * lim);
-    flag.resize(n_ + 8);
-    screen_residuals(px_.data(), py_.data(), pz_.data(), qx_.data(), qy_.data(), qz_.data(), Rf, tf, lim2, n_,
-                     flag.data());
-    std::memset(flag.data() + n_, 0, 8);
+    if ((int64_t)buf.size() < n_) buf.resize(n_);
+    const ResidualInput in{px_.data(), py_.data(), pz_.data(), qx_.data(), qy_.data(), qz_.data(), n_};
+    const size_t n_cand = reinterpret_cast<ResidualScreenFn>(screen_)(in, Rf, tf, lim2, buf.data());
+    // Exactly as mae_score, over the candidates in increasing order (the others are not inliers).
     const double *R = T.R, *t = T.t;
     const double tau = tau_;
     double score = 0.0;
-    for (int64_t k8 = 0; k8 < n_; k8 += 8) {
-        uint64_t word;
-        std::memcpy(&word, flag.data() + k8, 8);
-        if (!word) continue;
-        for (int64_t i = k8; i < k8 + 8 && i < n_; ++i) {
-            if (!flag[i]) continue;
-            const double *p = src_ + 3 * i, *q = tgt_ + 3 * i;
-            const double x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0] - q[0];
-            const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
-            const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
-            const double err = std::sqrt(x * x + y * y + z * z);
-            if (err < tau) score += (tau - err) / tau;
-        }
+    for (size_t c = 0; c < n_cand; ++c) {
+        const int32_t i = buf[c];
+        const double *p = src_ + 3 * (int64_t)i, *q = tgt_ + 3 * (int64_t)i;
+        const double x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0] - q[0];
+        const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
+        const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
+        const double err = std::sqrt(x * x + y * y + z * z);
+        if (err < tau) score += (tau - err) / tau;
     }
     return score;
 }
