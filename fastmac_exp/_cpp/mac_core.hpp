@@ -171,7 +171,11 @@ struct MacResult {
     bool reduced = false;
     std::string cap_hit;
     CliqueList selected;  // only with MacParams::return_selected
-    double t_graph = 0, t_cliques = 0, t_selection = 0, t_pose = 0;  // milliseconds
+    // Wall-clock milliseconds. graph: W and G. cliques: clustering/reduction, the clique graph and the
+    // search, which also computes each clique's weight and updates the per-node choice (streamed
+    // selection). selection: merging the per-thread choices and deduplicating. pose: hypotheses,
+    // scores and refinement.
+    double t_graph = 0, t_cliques = 0, t_selection = 0, t_pose = 0;
 };
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads);

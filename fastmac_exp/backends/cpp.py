@@ -110,7 +110,20 @@ def maximal_cliques(
 
 
 class CppBackend:
-    """MAC (graph, cliques, selection, pose) in the C++ core, parallel with OpenMP."""
+    """MAC (graph, cliques, selection, pose) in the C++ core, multi-threaded.
+
+    num_threads: 0 = automatic (OMP_NUM_THREADS if set, else all cores; one thread below 1,500
+    correspondences). Results do not depend on the thread count.
+
+    timings (ms, wall clock): graph = W and G; cliques = reduction check, clique search and, streamed
+    into it, each clique's weight and the per-node choice of node-guided selection (so no clique list
+    is ever stored); selection = merging those choices and deduplicating; pose = hypotheses, scores,
+    refinement. The Python backend's `selection` also contains the clique weights.
+
+    max_cliques keeps the first cliques of a serial search in degeneracy order (the Python backend
+    keeps igraph's first ones), so capped runs can differ between the backends; time_limit_s is
+    honoured here only.
+    """
 
     name = "cpp"
 
