@@ -78,7 +78,9 @@ def _ratio_axis(ax, ratios: np.ndarray) -> None:
     ax.grid(True, which="major", alpha=0.3)
 
 
-def plot_sampling(agg: pd.DataFrame, path: Path) -> Path | None:
+def plot_sampling(
+    agg: pd.DataFrame, path: Path, title: str = "Sampling strategy: accuracy against the sampling ratio"
+) -> Path | None:
     """RR / RE / TE against ratio per method; one row of three panels per dataset x descriptor."""
     if agg.empty or "ratio" not in agg:
         return None
@@ -105,14 +107,18 @@ def plot_sampling(agg: pd.DataFrame, path: Path) -> Path | None:
                 ax.set_ylim(bottom=0)
             ax.set_title(f"{title}: {label}" if title else label, fontsize=10)
         axes[row, 0].legend(fontsize=8, loc="best")
-    fig.suptitle("Sampling strategy: accuracy against the sampling ratio", fontsize=12)
+    fig.suptitle(title, fontsize=12)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
-def plot_time_profile(agg: pd.DataFrame, path: Path) -> Path | None:
+def plot_time_profile(
+    agg: pd.DataFrame,
+    path: Path,
+    title: str = "Time profile: median time per stage (bars: stage medians; line: median total)",
+) -> Path | None:
     """Stacked median stage times against ratio; one panel per method, one row per dataset x descriptor."""
     stages = [s for s in PROFILE_STAGES if f"t_{s}_ms" in agg and agg[f"t_{s}_ms"].notna().any()]
     if agg.empty or not stages or "ratio" not in agg:
@@ -155,7 +161,7 @@ def plot_time_profile(agg: pd.DataFrame, path: Path) -> Path | None:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
-    fig.suptitle("Time profile: median time per stage (bars: stage medians; line: median total)", fontsize=12)
+    fig.suptitle(title, fontsize=12)
     fig.legend(handles, labels, loc="lower center", fontsize=8, ncols=len(labels), frameon=False)
     fig.tight_layout(rect=(0, 0.06 / len(panels), 1, 1))
     fig.savefig(path, dpi=110)

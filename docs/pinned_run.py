@@ -1,0 +1,34 @@
+"""`python run.py ...` with the C++ extension loaded from a private copy (docs/run_studies.sh uses it).
+
+    FASTMAC_CORE_SO=outputs/studies/_core/_mac_core.so python docs/pinned_run.py -m +experiment=...
+
+The editable install's extension lives in site-packages and is rewritten in place whenever anyone runs
+`pip install -e .`; a sweep that has it loaded then crashes (SIGSEGV in _mac_core). Loading a copy made
+once at the start of the studies keeps every sweep on the same core. Without FASTMAC_CORE_SO this is
+exactly `python run.py`.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import runpy
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+so = os.environ.get("FASTMAC_CORE_SO")
+if so:
+    spec = importlib.util.spec_from_file_location("fastmac_exp._mac_core", so)
+    if spec is None or spec.loader is None:
+        raise SystemExit(f"FASTMAC_CORE_SO={so}: not an extension module")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules["fastmac_exp._mac_core"] = module
+    import fastmac_exp  # noqa: E402
+
+    fastmac_exp._mac_core = module  # the attribute `from fastmac_exp import _mac_core` reads
+
+sys.argv[0] = str(REPO / "run.py")
+runpy.run_path(str(REPO / "run.py"), run_name="__main__")

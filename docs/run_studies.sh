@@ -1,0 +1,123 @@
+#!/usr/bin/env bash
+# Runs the paper's studies (conf/experiment presets) sequentially into outputs/studies/<study>_<data>/,
+# then docs/make_results.py turns them into docs/results.md and docs/figures/.
+#
+#   docs/run_studies.sh                      # everything (about 40 min on a shared 2-core CPU)
+#   docs/run_studies.sh sampling filter      # some studies
+#   DATA="3dmatch kitti" N=8 docs/run_studies.sh sampling   # fewer data sets / pairs
+#   RESUME=1 DATA=kitti docs/run_studies.sh sampling    # finish an interrupted sweep (same command)
+#   python docs/make_results.py              # tables + figures -> docs/results.md
+#
+# Studies: sampling filter signal stochastic descriptor profile sota timing
+# Data:    3dmatch kitti 3dlomatch (synthetic families, N pairs each), real_indoor real_outdoor
+#          (the real pairs of ../shared/data, dataset=shared_real by category)
+# Each study's directory is deleted first: a run directory that already holds results is resumed
+# (its finished pairs are skipped whatever the config), so stale results would otherwise be kept.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+N=${N:-24}                                   # pairs per synthetic family
+DATA=${DATA:-"3dmatch kitti 3dlomatch real_indoor real_outdoor"}
+SEEDS=${SEEDS:-0,1,2}                        # stochastic samplers: seeds of the sampler (and the
+                                             # descriptor's 5,000-row subsample); the data stay fixed
+STUDIES=("$@")
+[ ${#STUDIES[@]} -eq 0 ] && STUDIES=(sampling filter signal profile descriptor sota stochastic timing)
+OUT=outputs/studies
+LOG=$OUT/run_studies.log
+mkdir -p "$OUT"
+# one BLAS / OpenMP thread: the machine is shared, and OpenBLAS threads spinning on busy cores make a
+# 1,000 x 1,000 eigendecomposition 30x slower
+export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+# mac.time_limit_s: a safety cap on the maximal-clique search (rows that hit it say so in `cap_hit`); some
+# dense synthetic KITTI-like graphs have millions of maximal cliques at ratio 0.5
+COMMON=(tracker=none progress=false mac.time_limit_s=${TIME_LIMIT_S:-10})
+
+# the C++ extension, copied once: `pip install -e .` (by anyone) rewrites the installed one in place, which
+# crashes a running sweep; docs/pinned_run.py loads this copy instead (delete $OUT/_core to refresh it)
+CORE=$OUT/_core/_mac_core.so
+if [ ! -f "$CORE" ]; then
+  mkdir -p "$OUT/_core"
+  src=$(python -c "import importlib.util as u; print(u.find_spec('fastmac_exp._mac_core').origin)")
+  cp "$src" "$CORE"
+  { echo "copied $(date -u +%FT%TZ) from $src"; echo "sha1 $(sha1sum "$CORE" | cut -c1-40)";
+    echo "commit $(git rev-parse HEAD)$(git diff --quiet HEAD -- fastmac_exp/_cpp || echo ' + uncommitted C++ changes')"; } >"$OUT/_core/info.txt"
+fi
+export FASTMAC_CORE_SO=$PWD/$CORE
+
+data_args() {  # the dataset overrides for one data key
+  case $1 in
+    3dmatch | kitti | 3dlomatch)
+      echo "dataset=synthetic dataset.family=$1 dataset.num_pairs=$N dataset.seed=0" ;;
+    real_indoor) echo "dataset=shared_real dataset.category=indoor" ;;
+    real_outdoor) echo "dataset=shared_real dataset.category=outdoor" ;;
+    *) echo "unknown data key $1" >&2; exit 2 ;;
+  esac
+}
+
+sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, timed into the log
+  local dir=$1; shift
+  [ "${RESUME:-0}" = 1 ] || rm -rf "$dir"  # RESUME=1: finish an interrupted sweep instead
+  local t0=$SECONDS attempt
+  echo "[$(date +%T)] python run.py -m $* ${COMMON[*]} hydra.sweep.dir=$dir" | tee -a "$LOG"
+  echo "  code: $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- fastmac_exp || echo ' + uncommitted changes under fastmac_exp/'); C++ core: $CORE" >>"$LOG"
+  # a crash (e.g. the C++ extension rebuilt under a running sweep) is retried: the same command into the
+  # same directory resumes every member run, skipping its finished pairs
+  for attempt in 1 2 3; do
+    if python docs/pinned_run.py -m "$@" "${COMMON[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
+      echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
+      return 0
+    fi
+    echo "[$(date +%T)]   attempt $attempt failed; resuming" | tee -a "$LOG"
+  done
+  echo "[$(date +%T)]   FAILED after 3 attempts" | tee -a "$LOG"
+  return 1
+}
+
+for study in "${STUDIES[@]}"; do
+  case $study in
+    sampling)  # Figs. down1-3; ratio 1 (= MAC, identical for every sampler) is run once per seed
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/sampling_strategy_$d/sweep" +experiment=sampling_strategy $(data_args "$d") \
+          ratio=0.5,0.2,0.1,0.05,0.01 seed="$SEEDS"
+        # shellcheck disable=SC2046
+        sweep "$OUT/sampling_strategy_$d/mac" $(data_args "$d") sampler=none seed="$SEEDS"
+      done ;;
+    filter)  # Table filter
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/filter_ablation_$d" +experiment=filter_ablation $(data_args "$d") seed="$SEEDS"
+      done ;;
+    signal)  # Fig. ablation (xyz signal on a dense Gaussian graph, as FastMAC's code)
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/signal_ablation_$d" +experiment=signal_ablation $(data_args "$d") seed="$SEEDS"
+      done ;;
+    profile)  # Table profile / Fig. 1: stage times against the ratio (ratio 1 with sampler=none = MAC)
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/time_profile_$d/fastmac" +experiment=time_profile $(data_args "$d") \
+          ratio=0.5,0.2,0.1,0.05,0.01
+        # shellcheck disable=SC2046
+        sweep "$OUT/time_profile_$d/mac" $(data_args "$d") sampler=none
+      done ;;
+    descriptor)  # Fig. desc: FPFH vs the learned descriptor (descriptors/fcgf_lite.onnx)
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d")
+      done ;;
+    sota)  # Tables kitti/3dmatch/3dlomatch: MAC, FastMAC@50/20 and peers on the same correspondences
+      for d in $DATA; do
+        # shellcheck disable=SC2046
+        sweep "$OUT/state_of_the_art_$d" +experiment=state_of_the_art $(data_args "$d")
+      done ;;
+    stochastic)  # Fig. stochastic: RR of greedy deterministic vs stochastic sampling (outdoor, 4 pairs)
+      # shellcheck disable=SC2046
+      sweep "$OUT/stochastic_vs_deterministic_kitti" +experiment=stochastic_vs_deterministic \
+        $(data_args kitti) dataset.limit=4 ;;
+    timing)  # Fig. stochastic, left: sampling time against the sample count, both samplers
+      echo "[$(date +%T)] python docs/time_samplers.py" | tee -a "$LOG"
+      python docs/time_samplers.py --out "$OUT/sampler_timing" >>"$LOG" 2>&1 ;;
+    *) echo "unknown study $study" >&2; exit 2 ;;
+  esac
+done
