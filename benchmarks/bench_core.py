@@ -246,15 +246,20 @@ def bench_config(
     return row
 
 
-def dense_vs_sparse(corr: Correspondences, threads: int) -> tuple[float, float]:
-    """ms of the dense numpy W and G = W * (W @ W) against the C++ sparse construction of both."""
-    src, tgt, gp = corr.src, corr.tgt, PARAMS.graph
-    n = len(src)
-    sparse = []  # first: after numpy's big matrix products OpenBLAS threads keep spinning for a while
+def sparse_graph_ms(corr: Correspondences, threads: int) -> float:
+    """Median ms of the C++ core building W and G (graph_edges)."""
+    times = []
     for _ in range(5):
         t0 = time.perf_counter()
-        cpp.graph_edges(src, tgt, gp, num_threads=threads)
-        sparse.append((time.perf_counter() - t0) * 1e3)
+        cpp.graph_edges(corr.src, corr.tgt, PARAMS.graph, num_threads=threads)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def dense_graph_ms(corr: Correspondences) -> float:
+    """ms of numpy building the dense N x N W and G = W * (W @ W)."""
+    src, tgt, gp = corr.src, corr.tgt, PARAMS.graph
+    n = len(src)
     t0 = time.perf_counter()
     w = np.empty((n, n))
     for a in range(0, n, 1024):  # row blocks keep the temporaries small
@@ -265,9 +270,8 @@ def dense_vs_sparse(corr: Correspondences, threads: int) -> tuple[float, float]:
         w[a:b] = np.where(s >= gp.threshold, s, 0.0)
     np.fill_diagonal(w, 0.0)
     g = w * (w @ w)
-    dense_ms = (time.perf_counter() - t0) * 1e3
     del w, g
-    return dense_ms, statistics.median(sparse)
+    return (time.perf_counter() - t0) * 1e3
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -407,6 +411,7 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print("Graph construction, W and G = W * (W @ W): dense numpy N x N against the sparse C++ core (ms)")
         print(f"{'source':9} {'N':>6} | {'dense':>9} {'sparse':>8} {'ratio':>7}")
+        configs = []
         for name, data in sources:
             for n in sizes:
                 if n > DENSE_MAX_N or (args.quick and n > 5000):
@@ -417,8 +422,12 @@ def main(argv: list[str] | None = None) -> int:
                     corr = data[0].subset(np.random.default_rng(0).permutation(len(data[0]))[:n])
                 else:
                     corr = synthetic(n, seed=n)[0]
-                dense, sparse = dense_vs_sparse(corr, args.threads)
-                print(f"{name:9} {n:6d} | {dense:9.1f} {sparse:8.2f} {dense / sparse:7.0f}")
+                configs.append((name, n, corr))
+        # all sparse timings first: after numpy's big matrix products OpenBLAS threads keep spinning
+        sparse = [sparse_graph_ms(corr, args.threads) for _, _, corr in configs]
+        for (name, n, corr), sp_ms in zip(configs, sparse):
+            dense = dense_graph_ms(corr)
+            print(f"{name:9} {n:6d} | {dense:9.1f} {sp_ms:8.2f} {dense / sp_ms:7.0f}")
 
     print()
     print("Targets")

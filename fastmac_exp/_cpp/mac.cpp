@@ -225,7 +225,8 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
     double tri_sum = 0.0, pair_sum = 0.0, cc_sum = 0.0;
     for (int64_t i = 0; i < n; ++i) {
         double tri = 0.0;
-        for (int t = 0; t < nthreads; ++t) tri += tri_t[t][i];
+        for (int t = 0; t < nthreads; ++t)
+            if (!tri_t[t].empty()) tri += tri_t[t][i];  // a worker may not have taken part
         int64_t deg = 0;
         for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) deg += G[p] != 0.0;
         if (deg > 1) {

@@ -1,11 +1,16 @@
 // Parallel loops for the core: a team of threads with dynamic scheduling.
 //
-// Default backend: std::thread, with the caller as thread 0 and blocking joins. Optional backend
-// (CMake -DFASTMAC_OPENMP=ON): OpenMP. The default avoids libgomp's spin-waiting at barriers: the
-// wait policy is read once per process when libgomp loads, torch ships and loads the same soname
-// with the spinning default, and on a small shared machine a spinning barrier costs scheduler time
-// slices (measured: a 2,000-correspondence MAC took 100-240 ms with 2 OpenMP threads after
-// `import torch`, 5-15 ms with this backend).
+// Default backend: a persistent pool of std::threads that sleep on a condition variable. The caller is
+// thread 0 and always runs; pool workers join a region only if they wake up while it is still open, and
+// the caller waits only for workers that did join. On a busy machine a worker that is not scheduled in
+// time therefore costs nothing (no spinning, no waiting for a thread to start), and the results never
+// depend on which workers took part: every loop hands out its work through a shared DynamicRange, so
+// body(tid) must not assume that any tid other than 0 runs.
+//
+// Optional backend (CMake -DFASTMAC_OPENMP=ON): OpenMP. Not the default because libgomp spins at
+// barriers with the wait policy of whoever loaded it first (torch ships the same soname), which on a
+// small shared machine made 2-thread runs 10-40x slower (measured: a 2,000-correspondence MAC took
+// 100-240 ms after `import torch`, against 5-15 ms).
 #pragma once
 
 #include <algorithm>
@@ -13,8 +18,8 @@
 #include <cstdint>
 #include <exception>
 #include <mutex>
-#include <thread>
-#include <vector>
+#include <type_traits>
+#include <utility>
 
 #ifdef FASTMAC_OPENMP
 #include <omp.h>
@@ -22,35 +27,37 @@
 
 namespace fastmac {
 
-// Runs body(tid) for tid = 0 .. nthreads-1 concurrently and returns when all are done. The first
-// exception thrown by any thread is rethrown here.
+namespace detail {
+// Runs fn(ctx, tid) on the caller (tid 0) and on up to nthreads - 1 pool workers (tid 1, 2, ...) that
+// join in time; returns when every participant is done. Rethrows the first exception.
+void pool_run(int nthreads, void (*fn)(void *, int), void *ctx);
+}  // namespace detail
+
+// Runs body(tid) concurrently: always for tid 0 (the caller), for other tids if workers are free.
 template <class F>
 void parallel_region(int nthreads, F &&body) {
     if (nthreads <= 1) {
         body(0);
         return;
     }
+#ifdef FASTMAC_OPENMP
     std::exception_ptr err;
     std::mutex mu;
-    auto guarded = [&](int tid) {
+#pragma omp parallel num_threads(nthreads)
+    {
         try {
-            body(tid);
+            body(omp_get_thread_num());
         } catch (...) {
             std::lock_guard<std::mutex> lock(mu);
             if (!err) err = std::current_exception();
         }
-    };
-#ifdef FASTMAC_OPENMP
-#pragma omp parallel num_threads(nthreads)
-    guarded(omp_get_thread_num());
-#else
-    std::vector<std::thread> pool;
-    pool.reserve(nthreads - 1);
-    for (int t = 1; t < nthreads; ++t) pool.emplace_back(guarded, t);
-    guarded(0);
-    for (auto &th : pool) th.join();
-#endif
+    }
     if (err) std::rethrow_exception(err);
+#else
+    using Body = std::remove_reference_t<F>;
+    detail::pool_run(
+        nthreads, [](void *ctx, int tid) { (*static_cast<Body *>(ctx))(tid); }, (void *)&body);
+#endif
 }
 
 // Hands out [begin, end) in chunks, in increasing order, to whichever thread asks next.
