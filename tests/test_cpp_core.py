@@ -390,6 +390,37 @@ def test_threads_give_identical_results():
     assert [c.tolist() for c in a["selected"]] == [c.tolist() for c in b["selected"]]
 
 
+def _mac_score_in_child(args, queue):
+    queue.put(core.mac(*args, num_threads=2)["score"])
+
+
+def test_concurrent_calls_and_fork():
+    """The worker pool serves concurrent callers and is rebuilt in a forked child (no deadlock)."""
+    import multiprocessing
+    import threading
+
+    src, tgt, _, _ = clustered(1600, 0.1, 0.01, 4)
+    args = (src, tgt, "quadratic", 0.06, 0.1, 0.95, 0.1)
+    want = core.mac(*args, num_threads=2)["score"]  # the parent's pool now exists
+    got = []
+    threads = [
+        threading.Thread(target=lambda: got.append(core.mac(*args, num_threads=2)["score"])) for _ in range(3)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert got == [want] * 3
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_mac_score_in_child, args=(args, queue))
+    child.start()
+    assert queue.get(timeout=60) == want
+    child.join(timeout=60)
+
+
 # ---------------------------------------------------------------------------------------------------
 # parity with the Python backend
 
