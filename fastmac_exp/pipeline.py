@@ -56,7 +56,8 @@ def register_correspondences(
     kept = sample.indices
     result = backend.register(corr.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
-    check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
+    if len(result.clique):  # peer backends (RANSAC, FGR, ...) report no clique
+        check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores

@@ -129,3 +129,19 @@ def test_impossible_ratio_fails_before_any_pair(tmp_path, ratio):
     with pytest.raises(InputError, match="config key: ratio"):
         run_experiment(_cfg(tmp_path, ratio=ratio), tmp_path / "run")
     assert not (tmp_path / "run" / "results.jsonl").exists()
+
+
+@pytest.mark.parametrize("name", ["ransac", "fgr", "kiss_matcher"])
+def test_peer_backends_through_the_pipeline(name):
+    from hydra.utils import instantiate
+
+    from fastmac_exp.backends import peers
+
+    backend = {
+        "ransac": lambda: peers.RansacBackend(max_iterations=2000),
+        "fgr": peers.FGRBackend,
+        "kiss_matcher": lambda: instantiate({"_target_": "fastmac_exp.backends.peers.KissMatcherBackend"}),
+    }[name]()
+    corr, gt = make_correspondences(n=500, inlier_ratio=0.2, noise=0.005, seed=13)
+    res, _ = register_correspondences(corr, mac_params_for("3dmatch", "fpfh"), NoSampler(), backend)
+    assert np.allclose(res.pose, gt, atol=0.1), name
