@@ -20,6 +20,9 @@ from fastmac_exp.types import Correspondences, RegistrationResult
 def _import_core() -> tuple[Any, str]:
     """Import the extension with OpenMP's passive wait policy unless the user chose one.
 
+    Only matters for cores built with -DFASTMAC_OPENMP=ON (the default build uses its own thread
+    pool and no OpenMP).
+
     libgomp reads OMP_WAIT_POLICY once, when it is loaded. Its default spins at every barrier for
     milliseconds; on a small shared machine (or next to OpenBLAS's spinning threads) that turns a
     1 ms MAC into 100+ ms. The variable is restored right after the import, so nothing else in the
