@@ -95,6 +95,13 @@ SIGNAL_NAMES = {
     "xyz000": "000 random",
 }
 FILTER_NAMES = {"highpass": "high-pass", "allpass": "all-pass", "lowpass": "low-pass"}
+SHORT = {
+    "3dmatch": "synthetic 3DMatch-like",
+    "3dlomatch": "synthetic 3DLoMatch-like",
+    "kitti": "synthetic KITTI-like",
+    "real_indoor": "real indoor",
+    "real_outdoor": "real outdoor",
+}
 SAMPLER_NAMES = {"highpass": "high-pass", "random": "random", "fps": "FPS"}
 
 
@@ -191,7 +198,7 @@ def line_figure(aggs: dict[str, pd.DataFrame], name: str, title: str, rename: di
     """plots.plot_sampling over several data sets (one row each); `sampler` holds the line label."""
     parts = []
     for data, a in aggs.items():
-        a = a.drop(columns=["descriptor"]).assign(dataset=f"{data}: {DATA[data][0]}")
+        a = a.drop(columns=["descriptor"]).assign(dataset=SHORT[data])
         if rename:
             a["sampler"] = a["sampler"].map(lambda s: rename.get(s, s))
         parts.append(a)
@@ -714,7 +721,7 @@ class Results:
             ax.set_ylim(-3, 105)
             ax.set_xlabel("median time per pair (ms, log)")
             ax.set_ylabel("RR (%)")
-            ax.set_title(f"{data}: {DATA[data][0]}", fontsize=9)
+            ax.set_title(SHORT[data], fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
             ax.margins(x=0.15)
         for ax in list(axes.flat)[n:]:

@@ -18,6 +18,7 @@ cd "$(dirname "$0")/.."
 
 N=${N:-24}                                   # pairs per synthetic family
 DATA=${DATA:-"3dmatch kitti 3dlomatch real_indoor real_outdoor"}
+SMALL_N=${SMALL_N:-12}                       # synthetic pairs for the signal and descriptor studies
 SEEDS=${SEEDS:-0,1,2}                        # stochastic samplers: seeds of the sampler (and the
                                              # descriptor's 5,000-row subsample); the data stay fixed
 STUDIES=("$@")
@@ -55,6 +56,8 @@ data_args() {  # the dataset overrides for one data key
   esac
 }
 
+synthetic() { case $1 in 3dmatch | kitti | 3dlomatch) return 0 ;; *) return 1 ;; esac; }
+
 sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, timed into the log
   local dir=$1; shift
   [ "${RESUME:-0}" = 1 ] || rm -rf "$dir"  # RESUME=1: finish an interrupted sweep instead
@@ -89,10 +92,12 @@ for study in "${STUDIES[@]}"; do
         # shellcheck disable=SC2046
         sweep "$OUT/filter_ablation_$d" +experiment=filter_ablation $(data_args "$d") seed="$SEEDS"
       done ;;
-    signal)  # Fig. ablation (xyz signal on a dense Gaussian graph, as FastMAC's code)
+    signal)  # Fig. ablation (xyz signal on a dense Gaussian graph, as FastMAC's code: ~1 s per pair), seed 0,
+      # the first $SMALL_N synthetic pairs
       for d in $DATA; do
+        lim=""; synthetic "$d" && lim="dataset.limit=$SMALL_N"
         # shellcheck disable=SC2046
-        sweep "$OUT/signal_ablation_$d" +experiment=signal_ablation $(data_args "$d") seed="$SEEDS"
+        sweep "$OUT/signal_ablation_$d" +experiment=signal_ablation $(data_args "$d") $lim
       done ;;
     profile)  # Table profile / Fig. 1: stage times against the ratio (ratio 1 with sampler=none = MAC)
       for d in $DATA; do
@@ -102,23 +107,28 @@ for study in "${STUDIES[@]}"; do
         # shellcheck disable=SC2046
         sweep "$OUT/time_profile_$d/mac" $(data_args "$d") sampler=none
       done ;;
-    descriptor)  # Fig. desc: FPFH vs the learned descriptor (descriptors/fcgf_lite.onnx)
+    descriptor)  # Fig. desc: FPFH vs the learned descriptor (descriptors/fcgf_lite.onnx), seed 0, the first
+      # $SMALL_N synthetic pairs
       for d in $DATA; do
+        lim=""; synthetic "$d" && lim="dataset.limit=$SMALL_N"
         # shellcheck disable=SC2046
-        sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d")
+        sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d") $lim
       done ;;
     sota)  # Tables kitti/3dmatch/3dlomatch: MAC, FastMAC@50/20 and peers on the same correspondences
       for d in $DATA; do
         # shellcheck disable=SC2046
         sweep "$OUT/state_of_the_art_$d" +experiment=state_of_the_art $(data_args "$d")
       done ;;
-    stochastic)  # Fig. stochastic: RR of greedy deterministic vs stochastic sampling (outdoor, 4 pairs)
+    stochastic)  # Fig. stochastic: RR of greedy deterministic vs stochastic sampling (outdoor, 4 pairs,
+      # 10-50 samples of 1,000; 100 samples cost ~1 min per pair and are timed by the timing study)
       # shellcheck disable=SC2046
       sweep "$OUT/stochastic_vs_deterministic_kitti" +experiment=stochastic_vs_deterministic \
-        $(data_args kitti) dataset.limit=4 ;;
+        $(data_args kitti) dataset.limit=4 ratio=0.05,0.02,0.01 ;;
     timing)  # Fig. stochastic, left: sampling time against the sample count, both samplers
       echo "[$(date +%T)] python docs/time_samplers.py" | tee -a "$LOG"
-      python docs/time_samplers.py --out "$OUT/sampler_timing" >>"$LOG" 2>&1 ;;
+      t0=$SECONDS
+      python docs/time_samplers.py --out "$OUT/sampler_timing" --budget-s 150 >>"$LOG" 2>&1
+      echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG" ;;
     *) echo "unknown study $study" >&2; exit 2 ;;
   esac
 done

@@ -89,7 +89,7 @@ def plot_sampling(
     colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
     fig, axes = plt.subplots(len(panels), 3, figsize=(14, 3.8 * len(panels)), squeeze=False)
     metrics = (("RR", "RR (%)"), ("RE_deg", "RE (deg)"), ("TE_cm", "TE (cm)"))
-    for row, (title, g) in enumerate(panels):
+    for row, (panel, g) in enumerate(panels):
         for col, (metric, label) in enumerate(metrics):
             ax = axes[row, col]
             for i, (lab, m) in enumerate(_methods(g, mkeys)):
@@ -105,10 +105,10 @@ def plot_sampling(
                 ax.set_ylim(-3, 103)
             else:
                 ax.set_ylim(bottom=0)
-            ax.set_title(f"{title}: {label}" if title else label, fontsize=10)
+            ax.set_title(f"{panel}: {label}" if panel else label, fontsize=10)
         axes[row, 0].legend(fontsize=8, loc="best")
     fig.suptitle(title, fontsize=12)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / fig.get_figheight()))  # room for the title
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -129,7 +129,7 @@ def plot_time_profile(
     fig, axes = plt.subplots(
         len(panels), ncols, figsize=(max(4.2 * ncols, 6), 3.8 * len(panels)), squeeze=False, sharey="row"
     )
-    for row, (title, g) in enumerate(panels):
+    for row, (panel, g) in enumerate(panels):
         methods = _methods(g, mkeys)
         for col in range(ncols):
             ax = axes[row, col]
@@ -153,7 +153,7 @@ def plot_time_profile(
             ax.set_xticks(x)
             ax.set_xticklabels([f"{r:g}" for r in m["ratio"]])
             ax.set_xlabel("sampling ratio")
-            ax.set_title(f"{title}: {lab}" if title else lab, fontsize=10)
+            ax.set_title(f"{panel}: {lab}" if panel else lab, fontsize=10)
             ax.grid(True, axis="y", alpha=0.3)
         axes[row, 0].set_ylabel("median time (ms)")
     legend: dict = {}
@@ -163,7 +163,7 @@ def plot_time_profile(
     handles, labels = list(legend.values()), list(legend.keys())
     fig.suptitle(title, fontsize=12)
     fig.legend(handles, labels, loc="lower center", fontsize=8, ncols=len(labels), frameon=False)
-    fig.tight_layout(rect=(0, 0.06 / len(panels), 1, 1))
+    fig.tight_layout(rect=(0, 0.06 / len(panels), 1, 1 - 0.45 / fig.get_figheight()))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
