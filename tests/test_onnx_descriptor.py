@@ -7,10 +7,12 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.onnx_descriptor import (
     DEFAULT_MODEL,
     OnnxDescriptor,
+    PatchParams,
     extract_patches,
     repo_root,
     support_clouds,
@@ -39,17 +41,17 @@ def box_surface(rng, lo, hi, spacing: float) -> np.ndarray:
     return np.vstack(out)
 
 
-def toy_room(seed: int = 0, spacing: float = 0.015) -> np.ndarray:
-    """A room corner (floor, two walls) with a few boxes: about 2 m across, metres."""
+def toy_room(seed: int = 0, spacing: float = 0.015, size: float = 2.0) -> np.ndarray:
+    """A room corner (floor, two walls) with a few boxes: `size` metres across."""
     rng = np.random.default_rng(seed)
     parts = []
     for axis in range(3):  # floor z=0, walls x=0 and y=0
-        n = int(4.0 / spacing**2)
-        p = rng.uniform(0, 2.0, (n, 3))
+        n = int(size**2 / spacing**2)
+        p = rng.uniform(0, size, (n, 3))
         p[:, axis] = 0.0
         parts.append(p)
     for _ in range(6):
-        c = rng.uniform(0.3, 1.7, 2)
+        c = rng.uniform(0.15, 0.85, 2) * size
         s = rng.uniform(0.15, 0.5, 3)
         parts.append(box_surface(rng, [c[0], c[1], 0.0], [c[0] + s[0], c[1] + s[1], s[2]], spacing))
     pts = np.vstack(parts)
@@ -87,6 +89,7 @@ def test_shipped_model_meets_contract(desc):
 
 
 def test_rotation_robustness(desc):
+    """The same patch under a random rotation of the whole cloud: the LRF makes the descriptor invariant."""
     pts = toy_room(1)
     voxel = 0.05
     kp = voxel_down(pts, voxel)
@@ -97,7 +100,24 @@ def test_rotation_robustness(desc):
     moved = [s @ rot.T + t for s in supports]
     b = desc.embed(extract_patches(kp @ rot.T + t, moved, voxel, desc.params))
     cos = np.sum(a * b, axis=1)
-    assert cos.mean() > 0.9, f"mean cosine under rotation {cos.mean():.3f}"
+    assert cos.mean() > 0.99, f"mean cosine under rotation {cos.mean():.3f}"
+
+
+def test_rotation_robustness_end_to_end(desc):
+    """Rotating the raw cloud also re-voxelises it (other keypoints, other patch samples): descriptors of
+    keypoints that land within 2 cm of each other still agree (mean cosine ~0.83; a grid shift alone
+    without rotation gives ~0.85, so the loss is resampling, not rotation), far above unrelated pairs."""
+    pts = toy_room(1)
+    rng = np.random.default_rng(4)
+    rot, t = random_rotation(rng), rng.uniform(-5, 5, 3)
+    k0, f0 = desc.features(pts, 0.05)
+    k1, f1 = desc.features(pts @ rot.T + t, 0.05)
+    dist, j = cKDTree((k1 - t) @ rot).query(k0)
+    near = dist < 0.02
+    assert near.mean() > 0.3
+    cos = np.sum(f0[near] * f1[j[near]], axis=1)
+    unrelated = np.sum(f0[near] * f1[rng.permutation(j[near])], axis=1)
+    assert cos.mean() > 0.75 and cos.mean() > unrelated.mean() + 0.3, (cos.mean(), unrelated.mean())
 
 
 def test_wrong_input_model_gives_clear_error(tmp_path):
@@ -115,15 +135,16 @@ def test_wrong_input_model_gives_clear_error(tmp_path):
         OnnxDescriptor(str(path))
     msg = str(err.value)
     assert "contract" in msg and "'points'" in msg and "rank 2" in msg and "tensor(double)" in msg
-    assert "rank 3" in msg and "(M, 64, 3)" in msg  # what was expected
+    want = PatchParams()
+    assert f"rank 3, (M, {want.size}, {want.channels})" in msg  # what was expected
 
 
 def test_wrong_patch_size_model(tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
-    x = helper.make_tensor_value_info("patches", TensorProto.FLOAT, ["M", 16, 3])
-    y = helper.make_tensor_value_info("d", TensorProto.FLOAT, ["M", 3])
+    x = helper.make_tensor_value_info("patches", TensorProto.FLOAT, ["M", 16, PatchParams().channels])
+    y = helper.make_tensor_value_info("d", TensorProto.FLOAT, ["M", PatchParams().channels])
     node = helper.make_node("ReduceMax", ["patches", "axes"], ["d"], keepdims=0)
     axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
     graph = helper.make_graph([node], "k16", [x], [y], initializer=[axes])
@@ -131,9 +152,8 @@ def test_wrong_patch_size_model(tmp_path):
     model.ir_version = 8
     path = tmp_path / "k16.onnx"
     onnx.save(model, str(path))
-    with pytest.raises(InputError, match="K = 16, the patch size is 64"):
+    with pytest.raises(InputError, match=f"K = 16, the patch size is {PatchParams().size}"):
         OnnxDescriptor(str(path))
-    assert OnnxDescriptor(str(path), k=16).params.k == 16  # an explicit override makes it fit
 
 
 def test_missing_model_path(tmp_path):
@@ -151,19 +171,17 @@ def test_relative_model_path_from_other_cwd(tmp_path, monkeypatch):
 
 def test_correspondences_on_small_pair(desc):
     rng = np.random.default_rng(5)
-    src = toy_room(2)
+    src = toy_room(2, spacing=0.02, size=1.5)
     gt = np.eye(4)
     gt[:3, :3], gt[:3, 3] = random_rotation(rng), rng.uniform(-1, 1, 3)
-    tgt = toy_room(2)[rng.permutation(len(src))[: int(0.8 * len(src))]]  # resampled, 80 % of the points
+    tgt = src[rng.permutation(len(src))[: int(0.8 * len(src))]]  # resampled, 80 % of the points
     tgt = tgt @ gt[:3, :3].T + gt[:3, 3] + rng.normal(scale=0.003, size=tgt.shape)
     pair = Pair(name="toy", gt=gt, src_cloud=src, tgt_cloud=tgt, voxel_size=0.05)
     d = OnnxDescriptor(max_correspondences=300)
     corr = d(pair, np.random.default_rng(0))
     assert isinstance(corr, Correspondences) and corr.labels is not None
     assert len(corr) == 300 and corr.scores is not None
-    assert corr.inlier_ratio > 0.05
-    again = d(pair, np.random.default_rng(0))
-    np.testing.assert_array_equal(corr.src, again.src)  # seeded
+    assert corr.inlier_ratio > 0.2  # FPFH: about 0.08 on this pair
     mutual = OnnxDescriptor(mutual=True, max_correspondences=0)(pair, np.random.default_rng(0))
     assert 0 < len(mutual) and mutual.inlier_ratio >= corr.inlier_ratio
     assert d.name == "fcgf" and d.graph_key == "fcgf"

@@ -1,29 +1,36 @@
-"""Learned-descriptor front end: local patches in a local reference frame (LRF), embedded by an ONNX model.
+"""Learned-descriptor front end: multi-scale local patches in a local reference frame (LRF), embedded by
+an ONNX model (the shipped `descriptors/fcgf_lite.onnx`; its model card is descriptors/MODEL_CARD.md).
 
-Runtime path: numpy/scipy preprocessing + onnxruntime inference. No torch import here (the training
-recipe in `descriptors/train.py` imports the preprocessing from this module, never the other way).
+Runtime path: numpy/scipy preprocessing + onnxruntime inference; torch is never imported here (the
+training recipe `descriptors/train.py` imports this preprocessing, so training and runtime cannot drift).
 
-Preprocessing of one cloud (all lengths in metres, `voxel` = the pair's or the configured voxel size):
+Preprocessing of one cloud (lengths in metres; `voxel` = the pair's voxel size unless configured):
 
-1. keypoints: Open3D voxel downsampling at `voxel` (the same keypoints as the FPFH front end);
-2. support: the cloud voxel-downsampled at `support_factor * voxel`;
-3. patch: the `K` nearest support points of each keypoint within `R = radius_factor * voxel`; slots with
-   no support point inside R repeat the keypoint itself (local origin), which a max-pool ignores;
-4. LRF (numpy, before the network): z = the normal of the patch's weighted covariance (weights R - d,
-   smallest eigenvector), signed so that the patch lies mostly below the keypoint (sum p.z <= 0);
-   x = the TOLDI direction, sum of tangent-plane projections weighted by (R - d)^2 (p.z)^2, falling back
-   to the largest eigenvector signed by the majority of projections when that sum vanishes; y = z x x;
-5. input: patch coordinates relative to the keypoint, rotated into the LRF and divided by R.
+1. keypoints: Open3D voxel downsampling at `voxel` (exactly the FPFH front end's keypoints);
+2. per scale s (shipped model: s=0 with K=64, R=6 voxel on the cloud at 1 voxel, i.e. the keypoints
+   themselves; s=1 with K=48, R=12 voxel on the cloud at 2.5 voxel): the K nearest support points of each
+   keypoint within R; empty slots repeat the nearest point (duplicates do not change a max-pool);
+3. LRF per scale (numpy, before the network): z = smallest eigenvector of the patch covariance weighted
+   by R - d, signed so that the patch lies mostly below the keypoint (sum w p.z <= 0); x = the TOLDI
+   direction, the tangent-plane projections weighted by (R - d)^2 (p.z)^2 (fallback: the largest
+   eigenvector, signed by the weighted majority of projections); y = z cross x;
+4. per point features (features="lrf_n"): x, y, z of the point relative to the keypoint in the LRF,
+   divided by R (so inside the unit ball, unitless); |n.z| and |n.r| where n is the point's unoriented
+   normal (10 nearest support points) and r the unit radial direction in the tangent plane (sign-free,
+   in [0, 1]); with two scales, a last channel holding the scale index s (0. or 1.).
 
-Model contract (checked when the model is opened; a model that does not fit raises InputError):
+Model contract (checked when the model is opened; a model that does not fit raises InputError naming
+what was expected and what was found):
 
-- one input, float32, rank 3: `(M, K, 3)` with M dynamic (any batch) and K, 3 fixed or dynamic;
-  the coordinates are LRF patch coordinates in units of R (so within the unit ball);
-- one output, float32, rank 2: `(M, D)` with D fixed (32 for the shipped model); rows are unit-norm
-  (the runtime re-normalises defensively, so a model may leave that to us).
+- exactly one input, float32, rank 3, `(M, K, C)`: M = number of keypoints (dynamic), K = points per
+  patch over all scales (64 + 48 = 112 for the shipped model), C = channels (5 + 1 = 6);
+  K and C may be fixed in the graph (then they must match) or dynamic;
+- exactly one output, float32, rank 2, `(M, D)`: D = 32 for the shipped model; rows unit-norm (the
+  runtime re-normalises defensively).
 
-The preprocessing parameters travel in the model's metadata (`metadata_props`: `fastmac.k`,
-`fastmac.radius_factor`, `fastmac.support_factor`); constructor arguments override them.
+The preprocessing parameters travel in the model's `metadata_props` (`fastmac.k`, `fastmac.radius_factor`,
+`fastmac.support_factor`, `fastmac.features`, `fastmac.k2`, `fastmac.radius_factor2`,
+`fastmac.support_factor2`); missing keys take the PatchParams defaults; constructor arguments override.
 """
 
 from __future__ import annotations
@@ -59,10 +66,10 @@ class PatchParams:
     k: int = 64
     radius_factor: float = 6.0
     support_factor: float = 1.0
-    features: str = "lrf"
-    k2: int = 0
-    radius_factor2: float = 15.0
-    support_factor2: float = 2.0
+    features: str = "lrf_n"
+    k2: int = 48
+    radius_factor2: float = 12.0
+    support_factor2: float = 2.5
 
     def __post_init__(self) -> None:
         if self.features not in FEATURES:
@@ -107,25 +114,25 @@ def clean_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
 
 
 def local_frames(local: np.ndarray, valid: np.ndarray, radius: float) -> np.ndarray:
-    """LRFs of patches: `local (M, K, 3)` keypoint-relative points, `valid (M, K)` -> `(M, 3, 3)` rows x, y, z."""
+    """LRFs of patches: `local (M, K, 3)` offsets, `valid (M, K)` -> `(M, 3, 3)`, rows x y z."""
     d = np.linalg.norm(local, axis=2)
     w = np.where(valid, np.clip(radius - d, 0.0, None), 0.0)  # (M, K)
     wsum = w.sum(axis=1)
     wsum = np.where(wsum > 0, wsum, 1.0)
-    cov = np.einsum("mk,mki,mkj->mij", w, local, local) / wsum[:, None, None]
+    cov = np.matmul((local * w[:, :, None]).transpose(0, 2, 1), local) / wsum[:, None, None]
     _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues; columns are eigenvectors
     z = vecs[:, :, 0]
-    h = np.einsum("mki,mi->mk", local, z)
+    h = np.matmul(local, z[:, :, None])[:, :, 0]
     flip = (w * h).sum(axis=1) > 0  # patch should lie below the keypoint: sum w p.z <= 0
     z = np.where(flip[:, None], -z, z)
     h = np.where(flip[:, None], -h, h)
     tang = local - h[:, :, None] * z[:, None, :]
     wx = w * w * h * h
-    x = np.einsum("mk,mki->mi", wx, tang)
+    x = np.matmul(wx[:, None, :], tang)[:, 0, :]
     nx = np.linalg.norm(x, axis=1)
     # fallback: largest eigenvector, signed by the majority of projections
     e = vecs[:, :, 2]
-    s = np.einsum("mk,mk->m", w, np.sign(np.einsum("mki,mi->mk", local, e)))
+    s = (w * np.sign(np.matmul(local, e[:, :, None])[:, :, 0])).sum(axis=1)
     e = np.where((s < 0)[:, None], -e, e)
     scale = np.sqrt(np.einsum("mk,mk->m", wx, np.einsum("mki,mki->mk", tang, tang))) + 1e-12
     weak = nx < 1e-3 * scale + 1e-12
@@ -144,7 +151,7 @@ def point_normals(points: np.ndarray, k: int = 10, tree: cKDTree | None = None) 
     _, idx = tree.query(points, k=k)
     nb = points[idx.reshape(len(points), -1)]
     nb = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
+    cov = np.matmul(nb.transpose(0, 2, 1), nb)
     return np.linalg.eigh(cov)[1][:, :, 0]
 
 
@@ -177,12 +184,12 @@ def scale_patches(
         valid = np.concatenate([valid, np.zeros((len(kp), k - kk), dtype=bool)], axis=1)
     local = support[idx] - kp[:, None, :]
     frames = local_frames(local, valid, radius)
-    xyz = np.einsum("mkj,mij->mki", local, frames) / radius
+    xyz = np.matmul(local, frames.transpose(0, 2, 1)) / radius
     if features == "lrf":
         return xyz.astype(np.float32)
     if normals is None:
         normals = point_normals(support, tree=tree)
-    n = np.einsum("mkj,mij->mki", normals[idx], frames)  # neighbour normals in the LRF (unsigned)
+    n = np.matmul(normals[idx], frames.transpose(0, 2, 1))  # neighbour normals in the LRF (unsigned)
     rho = np.sqrt(xyz[:, :, 0] ** 2 + xyz[:, :, 1] ** 2)
     nz = np.abs(n[:, :, 2])
     nr = np.abs(n[:, :, 0] * xyz[:, :, 0] + n[:, :, 1] * xyz[:, :, 1]) / np.maximum(rho, 1e-9)
@@ -195,7 +202,7 @@ def scale_patches(
 def extract_patches(
     keypoints: np.ndarray, supports: list[np.ndarray], voxel: float, params: PatchParams
 ) -> np.ndarray:
-    """Model input `(M, params.size, params.channels)` float32 for `keypoints`, one support cloud per scale."""
+    """Model input `(M, params.size, params.channels)` float32 for `keypoints`; one support cloud a scale."""
     parts = []
     for s, ((k, rf, _), support) in enumerate(zip(params.scales(), supports, strict=True)):
         x = scale_patches(keypoints, support, rf * voxel, k, params.features)
