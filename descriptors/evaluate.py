@@ -1,10 +1,11 @@
 """Evaluate the learned descriptor against FPFH on the same keypoints, then MAC with each.
 
-    cd /work/main && PYTHONPATH=. python -m descriptors.evaluate                 # 20 held-out + real pairs
-    PYTHONPATH=. python -m descriptors.evaluate --synthetic-pairs 4 --no-real    # quick
+    cd /work/main && PYTHONPATH=. python -m descriptors.evaluate       # 20 + 20 held-out + 3 real pairs
+    PYTHONPATH=. python -m descriptors.evaluate --synthetic-pairs 4 --lomatch-pairs 0 --no-real   # quick
 
-Held-out synthetic pairs: SyntheticDataset(family="3dmatch", seed=0), the project's default evaluation
-seed, disjoint from training (seed 1000) and validation (seed 2000). Real pairs: the indoor entries of
+Held-out synthetic pairs: SyntheticDataset families "3dmatch" (overlap 30-100 %) and "3dlomatch" (10-30 %,
+never trained on), seed 0, the project's default evaluation seed, disjoint from training (seed 1000)
+and validation (seed 2000). Real pairs: the indoor entries of
 <repo>/../shared/data/pairs.json (3DMatch / 3DLoMatch, read by path; skipped when absent).
 
 Both descriptors take the same keypoints (Open3D voxel downsampling at --voxel, 0.05 m) and match one
@@ -149,6 +150,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--synthetic-pairs", type=int, default=20)
     ap.add_argument("--seed", type=int, default=EVAL_SEED, help="synthetic evaluation seed")
     ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--lomatch-pairs", type=int, default=20, help="held-out low-overlap pairs (3dlomatch)")
     ap.add_argument("--no-real", action="store_true")
     ap.add_argument("--real-root", default=str(SHARED))
     ap.add_argument("--cache-dir", default=str(REPO / ".cache" / "synthetic"))
@@ -168,10 +170,10 @@ def main(argv: list[str] | None = None) -> None:
     backend = make_backend(args.backend)
     print(f"model {descriptors['fcgf'].model_path}; backend {type(backend).__name__}; voxel {args.voxel} m")
     report: dict = {}
-    if args.synthetic_pairs:
-        ds = SyntheticDataset(
-            family="3dmatch", num_pairs=args.synthetic_pairs, seed=args.seed, cache_dir=args.cache_dir
-        )
+    for family, n in (("3dmatch", args.synthetic_pairs), ("3dlomatch", args.lomatch_pairs)):
+        if not n:
+            continue
+        ds = SyntheticDataset(family=family, num_pairs=n, seed=args.seed, cache_dir=args.cache_dir)
         rows = []
         for i in range(len(ds)):
             rows.append(evaluate_pair(ds.load(i), descriptors, backend, seed=i))
@@ -180,8 +182,8 @@ def main(argv: list[str] | None = None) -> None:
                 f"  {r['pair']}: " + ", ".join(f"{k} IR {r[f'{k}_ir']:.3f} ok {r[f'{k}_ok']}" for k in keys),
                 flush=True,
             )
-        print_table(f"Held-out synthetic indoor pairs (3dmatch, seed {args.seed})", rows, keys)
-        report["synthetic"] = {"rows": rows, "summary": summarize(rows, keys)}
+        print_table(f"Held-out synthetic indoor pairs ({family}, seed {args.seed})", rows, keys)
+        report[f"synthetic_{family}"] = {"rows": rows, "summary": summarize(rows, keys)}
     if not args.no_real:
         real = real_indoor_pairs(Path(args.real_root), args.voxel)
         if real:
