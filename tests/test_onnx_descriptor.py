@@ -208,3 +208,12 @@ def test_config_instantiates():
     assert cfg.pop("graph_key") == "fcgf"
     d = instantiate(cfg)
     assert isinstance(d, OnnxDescriptor) and d.graph_key == "fcgf" and d.max_correspondences == 5000
+
+
+def test_pickles_for_parallel_workers(desc):
+    import pickle
+
+    clone = pickle.loads(pickle.dumps(desc))
+    shape = (5, desc.params.size, desc.params.channels)
+    x = np.random.default_rng(0).uniform(-1, 1, shape).astype(np.float32)
+    np.testing.assert_allclose(clone.embed(x), desc.embed(x), atol=1e-6)
