@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.matching import correspondences_from_features
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
@@ -144,17 +145,4 @@ class FPFHDescriptor:
         )
 
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
-        if pair.src_cloud is None or pair.tgt_cloud is None:
-            raise InputError(
-                f"pair {pair.name!r}: the fpfh descriptor needs both point clouds, but "
-                f"{'the source' if pair.src_cloud is None else 'the target'} cloud is missing"
-            )
-        voxel = self.voxel_size if self.voxel_size is not None else pair.voxel_size
-        src_kp, src_f = self.features(pair.src_cloud, voxel, what=f"pair {pair.name!r}: source cloud")
-        tgt_kp, tgt_f = self.features(pair.tgt_cloud, voxel, what=f"pair {pair.name!r}: target cloud")
-        si, ti, dist = match_features(src_f, tgt_f, self.mutual)
-        if self.max_correspondences and len(si) > self.max_correspondences:
-            keep = np.sort(rng.choice(len(si), size=self.max_correspondences, replace=False))
-            si, ti, dist = si[keep], ti[keep], dist[keep]
-        corr = Correspondences(src=src_kp[si], tgt=tgt_kp[ti], scores=1.0 - dist)
-        return pair.label(corr)
+        return correspondences_from_features(self, pair, rng, match_features)
