@@ -47,6 +47,14 @@ def _ms(fn, repeats: int = 1):
     return float(np.median(times)), out
 
 
+def sample_stats(corr, idx: np.ndarray, gp) -> dict:
+    """GT inlier ratio of the sample and the number of first-order graph edges among it (what MAC gets)."""
+    sub = corr.subset(np.asarray(idx))
+    return dict(
+        kept_inlier_ratio=float(sub.labels.mean()), kept_edges=int(first_order(sub.src, sub.tgt, gp).nnz // 2)
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=str(REPO / "outputs/studies/sampler_timing"))
@@ -72,8 +80,9 @@ def main() -> int:
         for k in (10, 20, 50, 100, 250, 500, 1000, 2500):
             if k > n // 2:
                 continue
-            draw_ms, _ = _ms(lambda s=scores, k=k: draw_proportional(s, k, rng), args.repeats)
-            rows.append(dict(sampler="stochastic (high-pass)", n=n, k=k, prep_ms=prep_ms, select_ms=draw_ms))
+            draw_ms, (idx, _) = _ms(lambda s=scores, k=k: draw_proportional(s, k, rng), args.repeats)
+            rows.append(dict(sampler="stochastic (high-pass)", n=n, k=k, prep_ms=prep_ms, select_ms=draw_ms,
+                             **sample_stats(sub, idx, gp)))  # fmt: skip
             print(rows[-1], flush=True)
 
     # deterministic: preparation = dense SOG + eigendecomposition; sampling = the greedy loop
@@ -95,10 +104,10 @@ def main() -> int:
                 rows.append(dict(sampler=DET, n=n, k=k, prep_ms=prep_ms, select_ms=np.nan, skipped=skip))
                 print(rows[-1], flush=True)
                 continue
-            sel_ms, _ = _ms(lambda v=vecs, k=k: greedy_e_optimal(v[:, :k], k))
+            sel_ms, idx = _ms(lambda v=vecs, k=k: greedy_e_optimal(v[:, :k], k))
             last = (k, sel_ms)
             rows.append(
-                dict(sampler="deterministic (greedy E-optimal)", n=n, k=k, prep_ms=prep_ms, select_ms=sel_ms)
+                dict(sampler=DET, n=n, k=k, prep_ms=prep_ms, select_ms=sel_ms, **sample_stats(sub, idx, gp))
             )
             print(rows[-1], flush=True)
 
