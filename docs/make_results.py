@@ -142,6 +142,42 @@ ISSUES = [
 ]
 
 
+# the reading of the run of 2026-11-22 (written by hand; the claim list after it is recomputed every time)
+SUMMARY = [
+    """**Sampling quality: the paper's claims hold.** High-pass sampling keeps MAC working where random
+    sampling and FPS collapse: at 5 % on the synthetic 3DMatch-like pairs 97 % RR against 35 % (random)
+    and 0 % (FPS), on the real indoor pairs 100 % against 33 % and 0 %; at 1 % it is ahead on all five
+    data sets (on the real outdoor pairs only within the seed spread). FPS is the worst strategy.
+    High-pass beats low-pass and all-pass wherever the data separate them (synthetic 3DMatch-like at 5
+    %: 97 % against 71 % / 74 %; at 1 %: 56 % against 26 % / 35 %), the degree signal beats the xyz
+    signal (which is no better than random) and adding xyz to the degree makes it worse. The synthetic
+    KITTI-like pairs and the registrable real outdoor pairs are too easy to separate the filters, the
+    signals or high-pass from random by RR (high-pass stays at 100 % / 75 % down to 1 %, random within a
+    pair of it; only FPS falls behind); there the differences show in TE (synthetic KITTI-like at 1 %:
+    4.8 cm high-pass, 16.6 cm random, 35 cm FPS).""",
+    """**Absolute RR.** Only the low-overlap synthetic family lands near the paper's numbers (MAC 43 %
+    against 41 % on 3DLoMatch; FastMAC@50/@20 42 % / 38 % against 38 % / 34 %, means over 3 seeds). The
+    other synthetic families are easier than the real benchmarks (MAC 100 %), the real sets have 3 and 4
+    pairs, and one of the 4 real outdoor pairs (58 m apart) has no correct match at all.""",
+    """**Speed: only partly.** Our C++ MAC is already fast on indoor data (17 ms for 5,000 FPFH
+    correspondences against the paper's 961 ms), so FastMAC@20 gains 2–3× (to 7–9 ms, mostly the 6–8 ms
+    of sampling on the CPU) rather than the paper's 27×. On outdoor data high-pass sampling at 20–50 %
+    concentrates the inliers (19 % → 80 % on real KITTI) into a near-clique whose maximal-clique search
+    costs as much as MAC on all correspondences or more (synthetic KITTI-like 385 → 302 ms, real outdoor
+    1949 → 1813 ms, with hits of the 3 s cap); FastMAC is fast outdoors only from 10 % down (75–144 ms,
+    then dominated by the 75–115 ms of building the sampling graph on the CPU). RR is kept at 20 % on
+    every data set (at most one pair lost).""",
+    """**Deterministic sampling** is thousands of times slower than the stochastic draw (about 8 s
+    against 0.9 ms for 100 of 1,000 correspondences, polynomial in the sample count), as the paper
+    says, but its quality is not similar here: the greedy E-optimal sample of the low-frequency
+    eigenvectors picks isolated outliers (0–2 % inliers and no graph edge in the sample, against
+    70–80 % inliers for the stochastic high-pass draw), so MAC registers nothing.""",
+    """**Peers.** On the same correspondences MAC and FastMAC beat Open3D RANSAC (1k/10k iterations), FGR
+    and KISS-Matcher on the indoor data (synthetic 3DMatch-like: 100 % against 54 / 79 / 33 / 58 %) and
+    tie with them on the easy outdoor data.""",
+]
+
+
 def para(text: str) -> str:
     """A paragraph written over several source lines, as one markdown line."""
     return " ".join(textwrap.dedent(text).split())
@@ -320,7 +356,8 @@ class Results:
                 hp, rnd, fps = (row_of(a, s, r) for s in SAMPLER_NAMES)
                 if hp is None or rnd is None or fps is None:
                     continue
-                c = compare(rr_mean(hp), [rr_mean(rnd), rr_mean(fps)], float(hp["RR_seed_std"]))
+                spread = float(np.nanmax([hp["RR_seed_std"], rnd["RR_seed_std"], fps["RR_seed_std"], 0.0]))
+                c = compare(rr_mean(hp), [rr_mean(rnd), rr_mean(fps)], spread)
                 te = ""
                 if c == "tie":
                     te = (
@@ -339,11 +376,14 @@ class Results:
             below = sum(rr_mean(f) < rr_mean(q) for f, q in pairs)
             same = sum(rr_mean(f) == rr_mean(q) for f, q in pairs)
             if pairs:
+                above = len(pairs) - below - same
                 v = (
                     "agrees"
                     if below > len(pairs) / 2
                     else "no difference"
                     if same == len(pairs)
+                    else "partly (otherwise tied)"
+                    if above == 0
                     else "disagrees"
                 )
                 self.claim(
@@ -654,7 +694,7 @@ class Results:
             for d in descs:
                 err = t.loc[t["descriptor"].astype(str).eq(d) & t["error"].fillna("").ne(""), "error"]
                 if len(err):
-                    self.notes.append(f"descriptor robustness, {data}, {d}: {len(err)} failed rows, e.g. "
+                    self.notes.append(f"descriptor robustness, {data}, {d}: {len(err)} failed row(s), e.g. "
                                       f"`{err.iloc[0][:160]}`")  # fmt: skip
         if aggs:
             title = "Descriptor robustness: FastMAC (high-pass) on FPFH and on the learned descriptor"
@@ -790,20 +830,20 @@ class Results:
                 err = t.loc[meth.eq(m) & t["error"].fillna("").ne(""), "error"]
                 if len(err):
                     self.notes.append(f"state of the art, {data}, {METHOD_NAMES[m]}: {len(err)} failed "
-                                      f"pairs, e.g. `{err.iloc[0][:160]}`")  # fmt: skip
+                                      f"pair(s), e.g. `{err.iloc[0][:160]}`")  # fmt: skip
             self.add(markdown_table(header, rows, ["l"] + ["r"] * 9), "")
             mac, f20 = (a[a["sampler"] == m] for m in ("mac", "fastmac20"))
             if len(mac) and len(f20):
                 mac, f20 = mac.iloc[0], f20.iloc[0]
                 drop, speed = mac["RR"] - f20["RR"], mac["t_total_ms"] / f20["t_total_ms"]
-                fast, little = speed >= 5, drop <= 100 / 24 + 1e-9  # at most one pair in 24
-                v = "agrees" if fast and little else "partly" if fast or little else "disagrees"
+                n_pairs = int(mac["pairs"])
+                v = "agrees" if drop <= 100 / n_pairs + 1e-9 else "disagrees"  # at most one pair lost
                 self.claim(
-                    "FastMAC@20 is much faster than MAC at little RR loss (paper: KITTI 97.66 → 98.02 % at "
-                    "570 → 28 ms; 3DMatch 83.90 → 80.71 % at 914 → 38 ms)",
+                    "FastMAC@20 loses little RR against MAC (paper: KITTI 97.66 → 98.02 %, 3DMatch 83.90 → "
+                    "80.71 %, 3DLoMatch 40.88 → 34.31 %)",
                     v,
-                    f"{data}: RR {fnum(mac['RR'])} → {fnum(f20['RR'])} % at {ms(mac['t_total_ms'])} → "
-                    f"{ms(f20['t_total_ms'])} ms ({speed:.1f}×)",
+                    f"{data}: RR {fnum(mac['RR'])} → {fnum(f20['RR'])} % ({n_pairs} pairs), at "
+                    f"{ms(mac['t_total_ms'])} → {ms(f20['t_total_ms'])} ms ({speed:.1f}×)",
                 )
         if aggs:
             self.sota_figure(aggs)
@@ -945,13 +985,30 @@ def main() -> int:
         "**Descriptor:** FPFH (Open3D) everywhere except section 5.",
         "",
     ]
-    verdict = ["## Where we agree with the paper and where we do not", ""]
+    summary = ["## Summary", ""] + [f"- {para(x)}" for x in SUMMARY] + [""]
+    verdict = ["## Where we agree with the paper and where we do not (recomputed)", ""]
+    verdict += [
+        para("""Each claim, per data set: the verdict from the numbers (RR means over seeds; "tie" =
+        equal RR), and the evidence. With 24 pairs a difference of one pair is 4.2 points."""),
+        "",
+    ]
     verdict += render_claims(res.claims) or ["(no studies found)"]
     verdict += [""]
     notes = ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
     notes += ["## Issues met while running the studies", ""] + [f"- {para(i)}" for i in ISSUES] + [""]
-    run = ["## What ran", "", "`docs/run_studies.sh` (sequential sweeps, `tracker=none`); wall times:", ""]
-    text = "\n".join(head + verdict + res.md + notes + run + wall_times()).rstrip() + "\n"
+    run = [
+        "## What ran",
+        "",
+        para("""`docs/run_studies.sh`: sequential sweeps with `tracker=none`, each through
+        `docs/pinned_run.py` (`python run.py` with a private copy of the C++ extension; the log shows them
+        as `python run.py`). The first sweep (sampling strategy, 3dmatch) ran before the pinning and the
+        clique-search cap were added; its seed-0 MAC and FastMAC@50/@20 rows are identical, pair by pair,
+        to the state-of-the-art study's, which ran with both. Sweeps restarted after a crash are counted
+        once (their last, complete run); about 10 more minutes went into two crashed and one stopped
+        attempt at the KITTI-like sampling sweep. Wall times:"""),
+        "",
+    ]
+    text = "\n".join(head + summary + verdict + res.md + notes + run + wall_times()).rstrip() + "\n"
     (DOCS / "results.md").write_text(text)
     print(f"wrote {DOCS / 'results.md'} and {len(list(FIG.glob('*.png')))} figures")
     return 0
