@@ -16,6 +16,7 @@ import pandas as pd
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from fastmac_exp import __version__
 from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
@@ -50,9 +51,12 @@ class Components:
         self.cfg = cfg
         cache_cfg = cfg.get("cache") or {}
         self.cache = CorrespondenceCache(cache_cfg.get("dir"), bool(cache_cfg.get("correspondences", False)))
+        desc_plain = OmegaConf.to_container(cfg.descriptor, resolve=True)
         self._cache_parts = {
             "dataset": ds_cfg,
-            "descriptor": OmegaConf.to_container(cfg.descriptor, resolve=True),
+            "descriptor": desc_plain,
+            "files": _file_stamps(desc_plain),  # a retrained model invalidates its cached matches
+            "version": __version__,
             "seed": int(cfg.seed),
         }
         self.labels = {
@@ -69,6 +73,16 @@ class Components:
                 raise InputError(f"dataset.limit must be >= 0, got {self.limit}")
             names = names[: int(self.limit)]
         return names
+
+
+def _file_stamps(cfg: dict[str, Any]) -> dict[str, list[float]]:
+    """Size and mtime of every existing file a config names (e.g. descriptor.model)."""
+    stamps = {}
+    for key, value in cfg.items():
+        if isinstance(value, str) and value and Path(value).is_file():
+            st = Path(value).stat()
+            stamps[key] = [st.st_size, st.st_mtime]
+    return stamps
 
 
 def _strip(node: DictConfig) -> dict[str, Any]:
@@ -161,6 +175,11 @@ def run_experiment(
 
     comp = Components(cfg)
     names = comp.names()
+    if not cfg.get("resume") and (run_dir / "results.jsonl").exists():
+        raise InputError(
+            f"{run_dir} already holds results; pass resume={run_dir} to continue that run, "
+            "or choose a new run directory"
+        )
     results = ResultsLog(run_dir)
     done = results.done()
     todo = [(i, n) for i, n in enumerate(names) if n not in done]

@@ -173,8 +173,10 @@ def run_pair(
     With a cache and a key, the descriptor's output is read from / written to the cache (its original
     describe time is reported, and the row says `describe_cached`).
     """
-    row = dict(row or {})
-    desc_rng, sample_rng = rng.spawn(2)  # independent streams: a cached description changes no sample
+    row = row if row is not None else {}  # filled in place: a pair that fails later keeps what was measured
+    # The descriptor draws from a spawned child stream, which leaves `rng` itself untouched, so the
+    # sampler's draws are the same whether the correspondences were computed or read from the cache.
+    (desc_rng,) = rng.spawn(1)
     describe_ms = 0.0
     if pair.correspondences is not None:
         corr = pair.correspondences

@@ -145,3 +145,20 @@ def test_peer_backends_through_the_pipeline(name):
     corr, gt = make_correspondences(n=500, inlier_ratio=0.2, noise=0.005, seed=13)
     res, _ = register_correspondences(corr, mac_params_for("3dmatch", "fpfh"), NoSampler(), backend)
     assert np.allclose(res.pose, gt, atol=0.1), name
+
+
+def test_rerun_into_a_used_directory_needs_resume(tmp_path):
+    from fastmac_exp.errors import InputError
+
+    run_experiment(_cfg(tmp_path), tmp_path / "run")
+    with pytest.raises(InputError, match="resume="):
+        run_experiment(_cfg(tmp_path, ratio=0.3), tmp_path / "run")
+
+
+def test_failed_pair_keeps_what_was_measured(tmp_path):
+    # a ratio that leaves fewer samples than a clique needs fails in the sampler, after describing
+    cfg = _cfg(tmp_path, ratio=0.005)
+    table, summary = run_experiment(cfg, tmp_path / "run")
+    assert summary["failed"] == 4
+    assert (table["n_in"] == 300).all() and table["inlier_ratio_in"].notna().all()
+    assert table["error"].str.contains("fewer than the 3").all()
