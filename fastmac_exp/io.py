@@ -24,15 +24,8 @@ from typing import NamedTuple
 import numpy as np
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.types import Correspondences
-
-MAX_COORD = 1e6  # metres; anything beyond is taken as a unit or parsing error
-# Rigidity tolerance on max |R^T R - I| and on the last row. Not 1e-4: the official 3DMatch gt.log matrices
-# are products of reconstruction poses and are not that orthonormal. Over the six gt.log files in
-# shared/data (1579 entries) the deviation reaches 5.1e-4 and 595 entries exceed 1e-4 (GeoTransformer's
-# gt.npy, the redkitchen 0->6 entry, has det 0.99990). A deviation of 1e-3 is a few hundredths of a degree,
-# far below any success threshold, while a scaled or sheared matrix (what this check is for) is off by more.
-RIGID_TOL = 1e-3
+from fastmac_exp.transforms import RIGID_TOL, check_rigid, nearest_rigid  # noqa: F401 - re-exported
+from fastmac_exp.types import MAX_COORD, Correspondences
 
 CLOUD_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".txt", ".npy", ".bin")
 MATRIX_EXTENSIONS = (".txt", ".npy", ".log", ".mat", "")
@@ -218,44 +211,6 @@ def load_cloud(path: str | Path, drop_zeros: bool = True) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------------------------
 # matrices
-
-
-def check_rigid(t: np.ndarray, where: str, tol: float = RIGID_TOL) -> np.ndarray:
-    """Return t as float64 (4, 4) if rigid: R orthonormal, det +1, last row 0 0 0 1 (all to `tol`)."""
-    t = np.asarray(t, dtype=np.float64)
-    if t.shape != (4, 4):
-        raise InputError(f"{where}: expected a 4x4 matrix, got shape {t.shape}")
-    if not np.isfinite(t).all():
-        raise InputError(f"{where}: the matrix has NaN or inf entries")
-    if np.abs(t[3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
-        raise InputError(f"{where}: the last row must be 0 0 0 1, got {t[3].tolist()}")
-    r = t[:3, :3]
-    dev = float(np.abs(r.T @ r - np.eye(3)).max())
-    det = float(np.linalg.det(r))
-    if dev > tol or det <= 0:
-        raise InputError(
-            f"{where}: the 3x3 block is not a rotation (max |R^T R - I| = {dev:.2e}, det = {det:.6f}; "
-            f"needs R orthonormal to {tol:g} with det +1)"
-        )
-    if np.abs(t[:3, 3]).max() > MAX_COORD:
-        raise InputError(f"{where}: translation {t[:3, 3].tolist()} is beyond {MAX_COORD:g} m")
-    return t
-
-
-def nearest_rigid(t: np.ndarray) -> np.ndarray:
-    """T with its 3x3 block replaced by the nearest rotation (SVD projection onto SO(3)).
-
-    Benchmark GTs are stored as given (faithful to the reference), but note: the 3DMatch gt.log rotations
-    are off orthonormal by up to 5e-4, which puts a floor under RE = arccos((tr(R^T R_gt) - 1) / 2): no
-    rotation R scores below arccos((sum of R_gt's singular values - 1) / 2), 0.58 deg for redkitchen 0->6
-    (and RE(R_gt, R_gt) itself is 0.82 deg). Comparing against nearest_rigid(gt) removes that floor.
-    """
-    t = np.array(t, dtype=np.float64)
-    u, _, vt = np.linalg.svd(t[:3, :3])
-    d = np.sign(np.linalg.det(u @ vt))
-    t[:3, :3] = u @ np.diag([1.0, 1.0, d]) @ vt
-    t[3] = [0.0, 0.0, 0.0, 1.0]
-    return t
 
 
 def read_matrix(path: str | Path, rigid: bool = True) -> np.ndarray:

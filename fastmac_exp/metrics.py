@@ -7,8 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from fastmac_exp.io import nearest_rigid
-from fastmac_exp.transforms import rotation_error_deg, translation_error_m
+from fastmac_exp.transforms import nearest_rigid, rotation_error_deg, translation_error_m
 
 
 @dataclass

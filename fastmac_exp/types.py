@@ -9,6 +9,8 @@ import numpy as np
 
 from fastmac_exp.errors import InputError
 
+MAX_COORD = 1e6  # metres; anything beyond is taken as a unit or parsing error
+
 
 def _as_points(name: str, a: Any) -> np.ndarray:
     arr = np.asarray(a, dtype=np.float64)
@@ -62,11 +64,11 @@ class Correspondences:
             if bad.any():
                 row = int(np.flatnonzero(bad)[0])
                 raise InputError(f"{where}: {name} point in row {row} is not finite: {arr[row].tolist()}")
-            huge = (np.abs(arr) > 1e6).any(axis=1)
+            huge = (np.abs(arr) > MAX_COORD).any(axis=1)
             if huge.any():
                 row = int(np.flatnonzero(huge)[0])
                 raise InputError(
-                    f"{where}: {name} point in row {row} has a coordinate beyond 1e6 m "
+                    f"{where}: {name} point in row {row} has a coordinate beyond {MAX_COORD:g} m "
                     f"({arr[row].tolist()}); are the units right?"
                 )
 
