@@ -25,11 +25,14 @@ CONF = REPO / "conf"
 PRESETS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 METHODS = sorted(p.stem for p in (CONF / "method").glob("*.yaml"))
 
-# the member of each sweep that the run test executes (cheap, and the fragile parts of each preset)
+# The member of each sweep that the run test executes: cheap, and the fragile parts of each preset, but
+# never a member whose outcome is a coin flip. FPS at 10 % of a 2 %-inlier pair keeps ~3 inliers among
+# 441 nodes, and whether that graph has a single triangle changed with the CPU's BLAS kernel (the scans
+# differ in the last bits): it failed on another machine, and OPENBLAS_CORETYPE=Sandybridge reproduces it.
 RUN_MEMBER = {
     "descriptor_robustness": {"descriptor": "fpfh", "ratio": "0.5"},  # fcgf: tests/test_onnx_descriptor.py
     "filter_ablation": {"sampler": "lowpass", "ratio": "0.2"},
-    "sampling_strategy": {"sampler": "fps", "ratio": "0.1"},
+    "sampling_strategy": {"sampler": "fps", "ratio": "0.5"},
     "signal_ablation": {"sampler.code": '"111"', "ratio": "0.2"},
     "state_of_the_art": {"+method": "fastmac20"},
     "stochastic_vs_deterministic": {"sampler": "deterministic", "ratio": "0.02"},
