@@ -46,6 +46,13 @@ class GraphParams:
         return self.tau * (1.0 - self.threshold) ** 0.5
 
 
+SEARCHES = ("bnb", "enumerate")
+# Branch-and-bound budget per search (a root in the search for the heaviest clique, or one pass):
+# far above what any bundled or shared pair needs (the worst seen: ~2e6 nodes in total), and about 10-20 s
+# of work on one core at worst, so that no input can hang a run.
+DEFAULT_MAX_NODES = 20_000_000
+
+
 @dataclass(frozen=True)
 class MacParams:
     """Everything MAC needs besides the correspondences."""
@@ -55,10 +62,24 @@ class MacParams:
     min_clique_size: int = 3
     refine_iters: int = 20
     reduction: bool = True  # the dense-graph reduction of spec section 2.5
-    max_cliques: int = 0  # safety cap, 0 = off; when hit, the result says so
-    time_limit_s: float = 0.0  # safety cap on the clique search, 0 = off
+    # How node-guided selection finds its cliques: "bnb" = each node's heaviest clique by branch and
+    # bound (exact: the same selection as enumerating every maximal clique); "enumerate" = every maximal
+    # clique (the reference; the only search of the Python backend).
+    search: str = "bnb"
+    # Work budgets (0 = off): a capped result is the same on any machine and thread count, and says so
+    # in `cap_hit`. max_cliques bounds the enumeration, max_nodes each branch-and-bound search.
+    max_cliques: int = 0
+    max_nodes: int = DEFAULT_MAX_NODES
+    time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
 
     def __post_init__(self) -> None:
+        if self.search not in SEARCHES:
+            raise InputError(f"mac.search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
+        for name in ("max_cliques", "max_nodes"):
+            if getattr(self, name) < 0:
+                raise InputError(f"mac.{name} must be >= 0 (0 = no cap), got {getattr(self, name)}")
+        if self.time_limit_s < 0:
+            raise InputError(f"mac.time_limit_s must be >= 0 (0 = no limit), got {self.time_limit_s}")
         if self.inlier_threshold <= 0:
             raise InputError(f"inlier_threshold must be positive, got {self.inlier_threshold}")
         if self.min_clique_size < 3:
@@ -126,7 +147,9 @@ def mac_params_for(
         "min_clique_size",
         "refine_iters",
         "reduction",
+        "search",
         "max_cliques",
+        "max_nodes",
         "time_limit_s",
     }
     if set(m) - known:

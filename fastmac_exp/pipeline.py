@@ -217,6 +217,8 @@ def run_pair(
         n_cliques=result.n_cliques,
         n_selected=result.n_selected,
         reduced=result.reduced,
+        search=result.search,
+        search_nodes=result.search_nodes,
         cap_hit=result.cap_hit,
         zero_filled=sample.zero_filled,
     )

@@ -206,9 +206,6 @@ def test_deterministic_sampler_refuses_beyond_caps():
 
 
 def test_torch_and_cpp_samplers_draw_the_same_samples():
-    cpp = pytest.importorskip("fastmac_exp.backends.cpp")
-    if not cpp.available():
-        pytest.skip("C++ core not built")
     corr, _ = make_correspondences(n=500, inlier_ratio=0.1, seed=8)
     gp, fam = _ctx()
     a = GraphFilterSampler(impl="cpp").sample(corr, 0.1, gp, fam, np.random.default_rng(3))

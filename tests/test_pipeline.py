@@ -50,11 +50,6 @@ def _cfg(tmp_path, **over):
     return cfg
 
 
-@pytest.fixture(autouse=True)
-def _precomputed_available():
-    pytest.importorskip("fastmac_exp.descriptors.precomputed")
-
-
 def test_experiment_writes_rows_tables_and_summary(tmp_path):
     table, summary = run_experiment(_cfg(tmp_path), tmp_path / "run")
     assert len(table) == 4 and list(table.columns[: len(COLUMNS)]) == COLUMNS

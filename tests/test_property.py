@@ -3,6 +3,8 @@ agree and never crash (they either return the same pose or fail with the same cl
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -14,8 +16,7 @@ from fastmac_exp.params import mac_params_for
 from fastmac_exp.transforms import random_rotation
 from fastmac_exp.types import Correspondences
 
-cpp = pytest.importorskip("fastmac_exp.backends.cpp")
-pytestmark = pytest.mark.skipif(not cpp.available(), reason="C++ core not built")
+from fastmac_exp.backends import cpp
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -37,17 +38,24 @@ def test_backends_agree_and_never_crash(seed, n, outlier_fraction, noise, family
     corr = Correspondences(src, tgt)
     params = mac_params_for(family, "fpfh")
     outcomes = []
-    for backend in (PythonBackend(), cpp.CppBackend()):
+    runs = [
+        (PythonBackend(), params),
+        (cpp.CppBackend(), replace(params, search="enumerate")),
+        (cpp.CppBackend(), params),  # the default search: branch and bound
+    ]
+    for backend, p in runs:
         try:
-            res = backend.register(corr, params)
+            res = backend.register(corr, p)
             outcomes.append(("ok", res))
         except RegistrationFailed as exc:
             outcomes.append(("failed", str(exc).split("(")[0].strip()))
-    (ka, a), (kb, b) = outcomes
-    assert ka == kb, outcomes
+    (ka, a), (kb, b), (kc, c) = outcomes
+    assert ka == kb == kc, outcomes
     if ka == "failed":
-        assert a == b
+        assert a == b == c
         return
-    assert a.n_cliques == b.n_cliques and a.n_selected == b.n_selected
-    np.testing.assert_array_equal(np.sort(a.clique), np.sort(b.clique))
-    np.testing.assert_allclose(a.pose, b.pose, atol=1e-6)
+    assert a.n_cliques == b.n_cliques
+    for other in (b, c):
+        assert other.n_selected == a.n_selected
+        np.testing.assert_array_equal(np.sort(a.clique), np.sort(other.clique))
+        np.testing.assert_allclose(a.pose, other.pose, atol=1e-6)

@@ -87,7 +87,6 @@ run_experiment(cfg, {run_dir!r})
 
 
 def test_sigkill_mid_run_then_resume_gives_one_row_per_pair(tmp_path):
-    pytest.importorskip("fastmac_exp.descriptors.precomputed")
     run_dir = tmp_path / "run"
     code = SCRIPT.format(repo=str(REPO), resume=None, run_dir=str(run_dir))
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, start_new_session=True)

@@ -5,6 +5,7 @@
 
 #include <cstring>
 
+#include "interrupt.hpp"
 #include "mac_core.hpp"
 
 namespace nb = nanobind;
@@ -153,13 +154,16 @@ nb::tuple maximal_cliques(int64_t n, const Indices &i, const Indices &j, int min
     return nb::make_tuple(clique_list(cl), cap_hit);
 }
 
-nb::tuple select_cliques(int64_t n, const Indices &i, const Indices &j, const Weights &w, int min_size,
-                         int num_threads) {
+nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Weights &w, int min_size,
+                        const std::string &search, int64_t max_cliques, int64_t max_nodes, double time_limit_s,
+                        int num_threads) {
     const int64_t m = (int64_t)i.shape(0);
     if ((int64_t)j.shape(0) != m || (int64_t)w.shape(0) != m)
         throw std::invalid_argument("i, j and w must have the same length");
+    const fastmac::Search how = fastmac::parse_search(search);
     fastmac::CliqueList sel;
-    int64_t n_cliques = 0;
+    int64_t n_cliques = 0, nodes = 0;
+    std::string cap_hit;
     {
         nb::gil_scoped_release nogil;
         fastmac::AdjGraph g = fastmac::adj_from_edges(n, i.data(), j.data(), m);
@@ -168,19 +172,31 @@ nb::tuple select_cliques(int64_t n, const Indices &i, const Indices &j, const We
         for (int64_t e = 0; e < m; ++e) {
             const int64_t a = i.data()[e], b = j.data()[e];
             if (a == b) continue;
+            if (!(w.data()[e] > 0.0))
+                throw std::invalid_argument("edge weights must be positive (edge " + std::to_string(e) + ")");
             for (auto [x, y] : {std::pair<int64_t, int64_t>{a, b}, {b, a}}) {
                 auto first = g.col.begin() + g.ptr[x], last = g.col.begin() + g.ptr[x + 1];
                 vals[std::lower_bound(first, last, (int32_t)y) - g.col.begin()] = w.data()[e];
             }
         }
-        sel = fastmac::node_guided_selection(g, vals, min_size, n_cliques, num_threads);
+        fastmac::CliqueCaps caps;
+        caps.max_cliques = max_cliques;
+        caps.max_nodes = max_nodes;
+        caps.time_limit_s = time_limit_s;
+        sel = fastmac::node_guided_selection(g, vals, min_size, how, caps, cap_hit, n_cliques, nodes, num_threads);
     }
-    return nb::make_tuple(clique_list(sel), n_cliques);
+    nb::dict d;
+    d["cliques"] = clique_list(sel);
+    d["n_cliques"] = n_cliques;
+    d["search_nodes"] = nodes;
+    d["cap_hit"] = cap_hit;
+    return d;
 }
 
 nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
              double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
-             int64_t max_cliques, double time_limit_s, int num_threads, bool return_selected) {
+             const std::string &search, int64_t max_cliques, int64_t max_nodes, double time_limit_s,
+             int num_threads, bool return_selected) {
     const int64_t n = check_pair(src, tgt);
     fastmac::MacParams p;
     p.graph = graph_params(kernel, alpha, tau, threshold);
@@ -188,7 +204,9 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     p.min_clique_size = min_clique_size;
     p.refine_iters = refine_iters;
     p.reduction = reduction;
+    p.search = fastmac::parse_search(search);
     p.max_cliques = max_cliques;
+    p.max_nodes = max_nodes;
     p.time_limit_s = time_limit_s;
     p.return_selected = return_selected;
     if (min_clique_size < 3) throw std::invalid_argument("min_clique_size must be at least 3");
@@ -206,6 +224,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     d["n_selected"] = r.n_selected;
     d["n_edges"] = r.n_edges;
     d["n_sog_edges"] = r.n_sog_edges;
+    d["search_nodes"] = r.search_nodes;
     d["reduced"] = r.reduced;
     d["cap_hit"] = r.cap_hit;
     nb::dict t;
@@ -235,9 +254,18 @@ nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
 NB_MODULE(_mac_core, m) {
     m.doc() = "C++ core of fastmac_exp: compatibility graphs, maximal cliques and MAC (see fastmac_exp.backends.cpp)";
 
+    // Ctrl-C inside the core: long searches poll this from the calling thread (interrupt.hpp).
+    fastmac::set_interrupt_poll([]() -> bool {
+        if (!Py_IsInitialized()) return false;
+        nb::gil_scoped_acquire gil;
+        return PyErr_CheckSignals() != 0;  // leaves the handler's exception (KeyboardInterrupt) set
+    });
+
     nb::register_exception_translator([](const std::exception_ptr &p, void *) {
         try {
             std::rethrow_exception(p);
+        } catch (const fastmac::Interrupted &) {
+            if (!PyErr_Occurred()) PyErr_SetNone(PyExc_KeyboardInterrupt);
         } catch (const fastmac::RegistrationFailed &e) {
             PyObject *cls = PyExc_RuntimeError;
             nb::object holder;
@@ -262,12 +290,15 @@ NB_MODULE(_mac_core, m) {
           "Every maximal clique of size >= min_size in canonical order, and the cap that stopped the search "
           "('' when none).");
     m.def("mac", &mac, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a, "inlier_threshold"_a,
-          "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "max_cliques"_a = 0,
-          "time_limit_s"_a = 0.0, "num_threads"_a = 0, "return_selected"_a = false,
+          "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "search"_a = "bnb",
+          "max_cliques"_a = 0, "max_nodes"_a = 0, "time_limit_s"_a = 0.0, "num_threads"_a = 0,
+          "return_selected"_a = false,
           "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order.");
-    m.def("select_cliques", &select_cliques, "n"_a, "i"_a, "j"_a, "w"_a, "min_size"_a = 3, "num_threads"_a = 0,
-          "Node-guided clique selection (spec 4) on the maximal cliques of the graph with edge weights w: "
-          "(the selected cliques in hypothesis order, the number of maximal cliques).");
+    m.def("select_cliques", &select_cliques, "n"_a, "i"_a, "j"_a, "w"_a, "min_size"_a = 3, "search"_a = "bnb",
+          "max_cliques"_a = 0, "max_nodes"_a = 0, "time_limit_s"_a = 0.0, "num_threads"_a = 0,
+          "Node-guided clique selection (spec 4) on the graph with positive edge weights w: a dict with "
+          "'cliques' (the selected cliques in hypothesis order), 'n_cliques' (maximal cliques enumerated, or "
+          "cliques offered by the branch and bound), 'search_nodes' and 'cap_hit'.");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },

@@ -8,6 +8,9 @@
 #include <cstring>
 #include <numeric>
 
+#include <thread>
+
+#include "interrupt.hpp"
 #include "mac_core.hpp"
 #include "parallel.hpp"
 
@@ -62,8 +65,6 @@ double adj_lookup(const AdjGraph &g, const std::vector<double> &vals, int32_t a,
     return vals[it - g.col.data()];
 }
 
-namespace {
-
 // Degeneracy (smallest-last) order by the bucket algorithm of Batagelj and Zaversnik.
 std::vector<int32_t> degeneracy_order(const AdjGraph &g) {
     const int64_t n = g.n;
@@ -106,13 +107,16 @@ std::vector<int32_t> degeneracy_order(const AdjGraph &g) {
     return vert;
 }
 
+namespace {
+
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
 struct Shared {
     std::atomic<bool> stop{false};
     std::atomic<int64_t> found{0};
-    std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit
+    std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit, 3 = interrupted
     int64_t max_cliques = 0;
+    Interrupt *interrupt = nullptr;  // polled by thread 0 (the caller) only
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
 };
@@ -186,13 +190,15 @@ class Worker {
 
     bool should_stop() {
         if (sh_.stop.load(std::memory_order_relaxed)) return true;
-        if (sh_.timed && (++calls_ & 255) == 0 && std::chrono::steady_clock::now() > sh_.deadline) {
-            int expected = 0;
-            sh_.why.compare_exchange_strong(expected, 2);
-            sh_.stop.store(true);
-            return true;
-        }
-        return false;
+        if ((++calls_ & 255) != 0) return false;
+        int reason = 0;
+        if (sh_.timed && std::chrono::steady_clock::now() > sh_.deadline) reason = 2;
+        if (tid_ == 0 && sh_.interrupt && sh_.interrupt->check()) reason = 3;
+        if (reason == 0) return false;
+        int expected = 0;
+        sh_.why.compare_exchange_strong(expected, reason);
+        sh_.stop.store(true);
+        return true;
     }
 
     void emit() {
@@ -296,17 +302,32 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
                           std::chrono::duration<double>(caps.time_limit_s));
     }
 
+    Interrupt interrupt;
+    sh.interrupt = &interrupt;
     sink.start(nthreads);
     std::vector<int64_t> counts(nthreads, 0);
     DynamicRange roots(0, n, 4);
+    std::atomic<int> inside{0};
     parallel_region(nthreads, [&](int tid) {
+        inside.fetch_add(1);
         Worker wk(g, min_size, sh, sink, tid);
         int64_t lo, hi;
         while (!sh.stop.load(std::memory_order_relaxed) && roots.next(lo, hi))
             for (int64_t i = lo; i < hi && !sh.stop.load(std::memory_order_relaxed); ++i)
                 wk.run_root(order[i], rank);
         counts[tid] = wk.delivered;
+        inside.fetch_sub(1);
+        if (tid == 0)  // the caller: wait for the others here, where Ctrl-C can still be seen
+            while (inside.load() > 0) {
+                if (interrupt.check()) {
+                    int expected = 0;
+                    sh.why.compare_exchange_strong(expected, 3);
+                    sh.stop.store(true);
+                }
+                std::this_thread::sleep_for(std::chrono::microseconds(200));
+            }
     });
+    if (sh.why.load() == 3) throw Interrupted();
 
     if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);
     if (sh.why.load() == 2) {

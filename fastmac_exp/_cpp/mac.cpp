@@ -9,6 +9,7 @@
 
 #include "mac_core.hpp"
 #include "parallel.hpp"
+#include "selection.hpp"
 
 namespace fastmac {
 
@@ -70,118 +71,16 @@ double otsu(const std::vector<double> &cc) {
     return best_i < 0 ? dflt : best_i * (hi - lo) / 100.0;
 }
 
-// Node-guided clique selection (spec 4) while the cliques are found, so that they need not be stored.
-//
-// The reference walks the cliques in canonical order and gives node k clique C when w_C > best_w[k]
-// (strictly, starting from 0). Node k thus ends with the heaviest clique containing it, the earliest in
-// canonical (lexicographic) order among equally heavy ones, provided its weight is > 0. That rule does
-// not depend on the order the cliques arrive in, so each thread keeps its own per-node choice and the
-// choices are merged by the same rule: the result is the reference's, whatever the thread count.
-// Memory: only cliques that were some node's choice at some point are kept.
+// The enumeration's side of node-guided selection: each maximal clique, as it is found, is offered
+// to its members (selection.hpp), so no clique list is ever stored.
 class SelectSink : public CliqueSink {
    public:
-    SelectSink(const AdjGraph &cg, const std::vector<double> &cgw) : cg_(cg), cgw_(cgw) {}
-
-    void start(int nthreads) override {
-        threads_.clear();
-        threads_.resize(nthreads);
-        for (auto &t : threads_) {
-            t.best_w.assign(cg_.n, 0.0);
-            t.best.assign(cg_.n, Ref{nullptr, 0});
-        }
-    }
-
-    void add(int tid, const int32_t *m, size_t k) override {
-        Thread &t = threads_[tid];
-        const double w = weight(m, k);
-        const int32_t *stored = nullptr;
-        for (size_t a = 0; a < k; ++a) {
-            const int32_t v = m[a];
-            if (better(w, m, k, t.best_w[v], t.best[v])) {
-                if (!stored) stored = t.store(m, k);
-                t.best_w[v] = w;
-                t.best[v] = Ref{stored, k};
-            }
-        }
-    }
-
-    // The hypotheses: each chosen clique once, at its smallest owner, in node order.
-    CliqueList finish() const {
-        const int64_t n = cg_.n;
-        std::vector<Ref> owner(n, Ref{nullptr, 0});
-        for (int64_t v = 0; v < n; ++v) {
-            double bw = 0.0;
-            for (const Thread &t : threads_)
-                if (t.best[v].p && better(t.best_w[v], t.best[v].p, t.best[v].k, bw, owner[v])) {
-                    bw = t.best_w[v];
-                    owner[v] = t.best[v];
-                }
-        }
-        // Every clique is delivered once, so equal cliques are the same stored copy: compare pointers.
-        CliqueList out;
-        std::vector<char> done(n, 0);
-        for (int64_t v = 0; v < n; ++v) {
-            const Ref r = owner[v];
-            if (!r.p || done[v]) continue;
-            out.data.insert(out.data.end(), r.p, r.p + r.k);
-            out.off.push_back((int64_t)out.data.size());
-            for (size_t a = 0; a < r.k; ++a)
-                if (owner[r.p[a]].p == r.p) done[r.p[a]] = 1;
-        }
-        return out;
-    }
+    explicit SelectSink(NodeChoice &choice) : choice_(choice) {}
+    void start(int nthreads) override { choice_.start(nthreads); }
+    void add(int tid, const int32_t *m, size_t k) override { choice_.offer(tid, m, k, choice_.weight(m, k)); }
 
    private:
-    struct Ref {
-        const int32_t *p;
-        size_t k;
-    };
-    struct Thread {
-        std::vector<double> best_w;
-        std::vector<Ref> best;
-        std::vector<std::unique_ptr<int32_t[]>> blocks;  // stored cliques; blocks never move
-        size_t used = 0, cap = 0;
-        const int32_t *store(const int32_t *m, size_t k) {
-            if (used + k > cap) {
-                cap = std::max<size_t>(size_t(1) << 16, k);
-                blocks.emplace_back(new int32_t[cap]);
-                used = 0;
-            }
-            int32_t *dst = blocks.back().get() + used;
-            std::copy(m, m + k, dst);
-            used += k;
-            return dst;
-        }
-    };
-
-    // Does clique (w, m) beat the current choice (bw, b)? Heavier wins; equal weight: the
-    // lexicographically smaller clique (the earlier in canonical order). Weight 0 never wins.
-    static bool better(double w, const int32_t *m, size_t k, double bw, const Ref &b) {
-        if (w > bw) return true;
-        if (w < bw || !(w > 0.0) || !b.p) return false;
-        return std::lexicographical_compare(m, m + k, b.p, b.p + b.k);
-    }
-
-    // w_C = sum over b of sum over a < b of G_ab (members ascending), from the clique graph.
-    double weight(const int32_t *m, size_t k) const {
-        double s = 0.0;
-        for (size_t b = 1; b < k; ++b) {
-            // m[0..b) are all neighbours of m[b] below it: search row m[b] forward, galloping
-            const int32_t *row = cg_.col.data() + cg_.ptr[m[b]];
-            const int32_t *end = cg_.col.data() + cg_.ptr[m[b] + 1];
-            for (size_t a = 0; a < b; ++a) {
-                int64_t step = 1;
-                while (row + step < end && row[step] < m[a]) step *= 2;
-                row = std::lower_bound(row + step / 2, std::min(row + step + 1, end), m[a]);
-                s += cgw_[row - cg_.col.data()];
-            }
-        }
-        return s;
-    }
-
-    const AdjGraph &cg_;
-    const std::vector<double> &cgw_;
-    std::vector<Thread> threads_;
+    NodeChoice &choice_;
 };
 
 }  // namespace
@@ -243,12 +142,24 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
     return out;
 }
 
-CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size,
-                                 int64_t &n_cliques, int nthreads) {
-    SelectSink sink(g, vals);
-    std::string cap_hit;
-    n_cliques = enumerate_maximal_cliques(g, min_size, CliqueCaps(), cap_hit, nthreads, sink);
-    return sink.finish();
+Search parse_search(const std::string &name) {
+    if (name == "bnb") return Search::Heaviest;
+    if (name == "enumerate") return Search::Enumerate;
+    throw std::invalid_argument("search must be 'bnb' or 'enumerate', got '" + name + "'");
+}
+
+CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
+                                 const CliqueCaps &caps, std::string &cap_hit, int64_t &n_cliques,
+                                 int64_t &search_nodes, int nthreads) {
+    NodeChoice choice(g, vals);
+    search_nodes = 0;
+    if (search == Search::Heaviest) {
+        n_cliques = heaviest_cliques(g, vals, min_size, caps, cap_hit, search_nodes, nthreads, choice);
+    } else {
+        SelectSink sink(choice);
+        n_cliques = enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
+    }
+    return choice.finish();
 }
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads) {
@@ -318,16 +229,23 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     std::vector<double>().swap(G);
     CliqueCaps caps;
     caps.max_cliques = p.max_cliques;
+    caps.max_nodes = p.max_nodes;
     caps.time_limit_s = p.time_limit_s;
-    SelectSink sink(cg, cgw);
-    res.n_cliques = enumerate_maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads, sink);
+    NodeChoice choice(cg, cgw);
+    if (p.search == Search::Heaviest) {
+        res.n_cliques =
+            heaviest_cliques(cg, cgw, p.min_clique_size, caps, res.cap_hit, res.search_nodes, nthreads, choice);
+    } else {
+        SelectSink sink(choice);
+        res.n_cliques = enumerate_maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads, sink);
+    }
     res.t_cliques = ms_since(t0);
     if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));
 
     // ---- node-guided selection (spec 4): merge the per-thread choices, deduplicate by first owner
     t0 = Clock::now();
-    CliqueList selected = sink.finish();
+    CliqueList selected = choice.finish();
     res.n_selected = (int64_t)selected.size();
     if (p.return_selected) res.selected = selected;
     res.t_selection = ms_since(t0);

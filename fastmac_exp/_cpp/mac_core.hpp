@@ -91,10 +91,17 @@ struct CliqueList {
     const int32_t *begin(size_t c) const { return data.data() + off[c]; }
 };
 
+// Bounds on a clique search. max_cliques (enumeration) and max_nodes (branch and bound) are work
+// budgets: a capped result is the same for any thread count and machine load. time_limit_s is a
+// wall-clock safety net: a result it cuts short depends on timing.
 struct CliqueCaps {
-    int64_t max_cliques = 0;    // 0 = no cap
+    int64_t max_cliques = 0;    // enumeration: stop after this many maximal cliques; 0 = no cap
+    int64_t max_nodes = 0;      // branch and bound: search-tree nodes; 0 = no cap
     double time_limit_s = 0.0;  // 0 = no limit
 };
+
+// Vertices in degeneracy (smallest-last) order.
+std::vector<int32_t> degeneracy_order(const AdjGraph &g);
 
 // Receives the maximal cliques as they are found: members ascending, from thread tid (0 .. nthreads-1),
 // in no particular order. Each maximal clique is delivered exactly once.
@@ -115,6 +122,15 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
 // order. When a cap stops the search, cap_hit names it and the partial list is returned.
 CliqueList maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
                            int nthreads);
+
+class NodeChoice;  // selection.hpp
+
+// Node-guided selection without enumeration (heaviest.cpp): offers to `choice` (started here) every
+// clique that may be some node's heaviest clique of size >= min_size, by branch and bound; without a
+// cap hit, choice.finish() then equals the selection over all maximal cliques. Returns the number of
+// cliques offered; search_nodes receives the search-tree nodes visited. Throws Interrupted on Ctrl-C.
+int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int min_size, const CliqueCaps &caps,
+                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice);
 
 // ---------------------------------------------------------------------------------------------
 // Poses
@@ -152,13 +168,20 @@ class Scorer {
 // ---------------------------------------------------------------------------------------------
 // MAC
 
+// How node-guided selection finds its cliques: per-node heaviest cliques by branch and bound
+// (exact, the default), or every maximal clique (the reference enumeration).
+enum class Search { Heaviest, Enumerate };
+Search parse_search(const std::string &name);  // "bnb" | "enumerate"; throws std::invalid_argument
+
 struct MacParams {
     GraphParams graph;
     double inlier_threshold = 0.1;
     int min_clique_size = 3;
     int refine_iters = 20;
     bool reduction = true;
-    int64_t max_cliques = 0;
+    Search search = Search::Heaviest;
+    int64_t max_cliques = 0;  // enumeration budget
+    int64_t max_nodes = 0;    // branch-and-bound budget
     double time_limit_s = 0.0;
     bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
 };
@@ -167,7 +190,8 @@ struct MacResult {
     Pose pose, pose_unrefined;
     std::vector<int64_t> clique;
     double score = 0.0;
-    int64_t n_cliques = 0, n_selected = 0, n_edges = 0, n_sog_edges = 0;
+    // n_cliques: maximal cliques enumerated, or (branch and bound) cliques offered to the selection
+    int64_t n_cliques = 0, n_selected = 0, n_edges = 0, n_sog_edges = 0, search_nodes = 0;
     bool reduced = false;
     std::string cap_hit;
     CliqueList selected;  // only with MacParams::return_selected
@@ -182,8 +206,10 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
 
 // Node-guided selection (spec 4) over the maximal cliques (size >= min_size) of a weighted graph:
 // the hypotheses' cliques in order. g: symmetric, sorted rows; vals: the weight of each entry.
-CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size,
-                                 int64_t &n_cliques, int nthreads);
+// n_cliques and search_nodes as in MacResult.
+CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
+                                 const CliqueCaps &caps, std::string &cap_hit, int64_t &n_cliques,
+                                 int64_t &search_nodes, int nthreads);
 
 // Pieces of MAC, exposed for tests.
 struct Clustering {

@@ -147,7 +147,9 @@ class CppBackend:
             min_clique_size=int(params.min_clique_size),
             refine_iters=int(params.refine_iters),
             reduction=bool(params.reduction),
+            search=str(params.search),
             max_cliques=int(params.max_cliques),
+            max_nodes=int(params.max_nodes),
             time_limit_s=float(params.time_limit_s),
             num_threads=self.num_threads,
         )
@@ -162,5 +164,7 @@ class CppBackend:
             n_edges=int(r["n_edges"]),
             reduced=bool(r["reduced"]),
             cap_hit=str(r["cap_hit"]),
+            search=str(params.search),
+            search_nodes=int(r["search_nodes"]),
             timings=dict(r["timings"]),
         )

@@ -1,0 +1,629 @@
+// Node-guided selection computed directly: for every node, the heaviest clique of size >= min_size that
+// contains it, by branch and bound, without enumerating every maximal clique.
+//
+// Why this is the selection (spec 4): every edge weight G_ij is positive, so a clique of size >= m
+// that is heaviest among the cliques of size >= m containing node v is maximal (adding a vertex adds
+// weight and keeps the size >= m). Node-guided selection gives v exactly that clique, the earliest in
+// canonical order among equally heavy ones. So the selection is a per-node maximum-edge-weight clique
+// problem; NodeChoice (selection.hpp) applies the tie rule to whatever cliques the search offers, and
+// the search offers every clique that is at least as heavy as the best one known for some member.
+//
+// The search, in three steps:
+//  1. Lower bounds. For every node, a greedy clique through it (add the candidate most attached to the
+//     clique so far); each clique raises the lower bound lb of all its members.
+//  2. The heaviest clique overall, w*. Branch and bound from every vertex in degeneracy order (each
+//     clique searched from its lowest-ranked vertex, as in Eppstein, Loeffler and Strash), against the
+//     best weight so far. Every clique of weight >= w* (ties included) is offered, so a node whose
+//     lower bound reaches w* is done: no clique through it can be heavier.
+//  3. Every other node z: branch and bound over z's neighbourhood for the heaviest clique through z,
+//     against lb(z). Each search reads nothing that another changes, so they run in parallel and
+//     the work (hence a node budget) does not depend on the thread count or on timing.
+// The branch and bound (per search): candidates P with a greedy colouring in independent sets (Tomita's
+// MCQ/MCS), a clique takes one vertex per colour class at most; visiting the classes in order, each
+// member contributes its attachment to R (sum of G to the chosen vertices) plus at most, for every
+// earlier class, its heaviest edge into that class. The bound for the branch on the vertex at position
+// i is the sum over the classes up to i of the largest such contribution (an edge-weighted colouring
+// bound in the spirit of San Segundo, Coniglio, Furini and Ljubic, "A new branch-and-bound algorithm
+// for the maximum edge-weighted clique problem", EJOR 2019). Branches whose bound is below the target
+// (with a relative slack of 1e-9 for summation order) cannot hold a clique anyone needs.
+//
+// Without a cap hit the result equals the full enumeration's selection, ties included.
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <memory>
+#include <thread>
+
+#include "interrupt.hpp"
+#include "mac_core.hpp"
+#include "parallel.hpp"
+#include "selection.hpp"
+
+namespace fastmac {
+
+namespace {
+
+constexpr double kSlack = 1e-9;  // bounds sum in another order than the canonical weight: cut only clearly
+
+inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
+
+struct Control {
+    int64_t max_nodes = 0;  // per search (one root in step 2, one node in step 3)
+    bool timed = false;
+    std::chrono::steady_clock::time_point deadline;
+    std::atomic<bool> stop{false};
+    std::atomic<int> why{0};  // 1 = max_nodes, 2 = time limit, 3 = interrupted
+    void halt(int reason) {
+        int expected = 0;
+        why.compare_exchange_strong(expected, reason);
+        stop.store(true);
+    }
+};
+
+class Searcher {
+   public:
+    Searcher(const AdjGraph &g, const std::vector<double> &vals, int min_size, NodeChoice &choice, Control &ctl,
+             int tid)
+        : g_(g), vals_(vals), min_size_(min_size), choice_(choice), ctl_(ctl), tid_(tid), loc_(g.n, -1) {}
+
+    int64_t nodes = 0, offered = 0;
+    bool capped = false;  // some search ran out of its node budget
+    std::vector<std::pair<int32_t, double>> raised;  // (node, weight) of every clique offered
+    Interrupt *interrupt = nullptr;                  // thread 0 only
+
+    // Branch and bound over the maximal cliques that contain `root`, lie in root + cand and are not
+    // extended by any vertex of excl (cand, excl: neighbours of root), offering every one whose weight
+    // reaches `target`; target rises with what is found.
+    void search(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl, double &target) {
+        if ((int)cand.size() + 1 < min_size_) return;
+        setup(root, cand, excl);
+        target_ = &target;
+        targets_ = nullptr;
+        search_nodes_ = 0;
+        aborted_ = false;
+        R_.clear();
+        expand(0, 0.0);
+        capped = capped || aborted_;
+    }
+
+    // The same over the maximal cliques whose lowest-ranked vertex is root, with a target per node:
+    // a clique is wanted when it reaches the target of one of its members (targets[v] = infinity:
+    // v needs nothing more). Targets rise with what is found.
+    void search_all(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl,
+                    std::vector<double> &targets) {
+        if ((int)cand.size() + 1 < min_size_) return;
+        setup(root, cand, excl);
+        targets_ = &targets;
+        search_nodes_ = 0;
+        aborted_ = false;
+        R_.clear();
+        expand(0, 0.0);
+        capped = capped || aborted_;
+    }
+
+    // A heavy maximal clique through z, built greedily (each step adds the candidate most attached to
+    // the clique so far), offered as a starting lower bound for its members.
+    void greedy(int32_t z) {
+        C_.clear();
+        ca_.clear();
+        for (int64_t p = g_.ptr[z]; p < g_.ptr[z + 1]; ++p) {
+            C_.push_back(g_.col[p]);
+            ca_.push_back(vals_[p]);
+        }
+        members_.assign(1, z);
+        while (!C_.empty()) {
+            size_t k = 0;
+            for (size_t q = 1; q < C_.size(); ++q)
+                if (ca_[q] > ca_[k]) k = q;
+            const int32_t x = C_[k];
+            members_.push_back(x);
+            // C = C n N(x), attachments += G(x, .): a merge of two sorted lists
+            size_t out = 0, q = 0;
+            int64_t p = g_.ptr[x];
+            const int64_t pe = g_.ptr[x + 1];
+            while (q < C_.size() && p < pe) {
+                if (C_[q] < g_.col[p]) {
+                    ++q;
+                } else if (g_.col[p] < C_[q]) {
+                    ++p;
+                } else {
+                    C_[out] = C_[q];
+                    ca_[out] = ca_[q] + vals_[p];
+                    ++out;
+                    ++q;
+                    ++p;
+                }
+            }
+            C_.resize(out);
+            ca_.resize(out);
+        }
+        if ((int)members_.size() < min_size_) return;
+        std::sort(members_.begin(), members_.end());
+        greedy_.push_back(members_);
+    }
+
+    std::vector<std::vector<int32_t>> greedy_;  // the greedy cliques of this thread, weighed later
+
+    // Offers a clique found outside the search (members ascending, weight w).
+    void offer_clique(const std::vector<int32_t> &m, double w) {
+        members_ = m;
+        offer(w);
+    }
+
+   private:
+    struct Level {
+        std::vector<uint64_t> P, X;       // candidates, excluded vertices (bits over the local indices)
+        std::vector<double> a;            // attach(u) for u in P
+        std::vector<int32_t> order, col;  // P in colour order, and each one's colour (1-based)
+        std::vector<double> val;          // bound on each one's contribution to a clique (same order)
+    };
+
+    const AdjGraph &g_;
+    const std::vector<double> &vals_;
+    const int min_size_;
+    NodeChoice &choice_;
+    Control &ctl_;
+    const int tid_;
+    std::vector<int32_t> loc_, L_, R_, members_, C_;
+    std::vector<double> ca_;
+    std::vector<uint64_t> adj_, U_, Q_;
+    std::vector<double> gm_;  // local weights, np x np (0 = no edge)
+    std::vector<Level> levels_;
+    int np_ = 0, nl_ = 0, W_ = 0;  // candidates are local 0..np-1, excluded np..nl-1
+    int32_t root_ = 0;
+    double *target_ = nullptr;             // one target for every node (search), or
+    std::vector<double> *targets_ = nullptr;  // a target per node (search_all)
+    int64_t search_nodes_ = 0;
+    bool aborted_ = false;
+
+    void setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
+        L_ = cand;
+        L_.insert(L_.end(), excl.begin(), excl.end());
+        np_ = (int)cand.size();
+        nl_ = (int)L_.size();
+        W_ = (nl_ + 63) / 64;
+        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
+        // Bit rows of every local vertex; weights among the candidates only (excluded vertices never
+        // join a clique here).
+        adj_.assign((size_t)nl_ * W_, 0);
+        gm_.assign((size_t)np_ * np_, 0.0);
+        for (int k = 0; k < nl_; ++k) {
+            const int32_t u = L_[k];
+            uint64_t *row = adj_.data() + (size_t)k * W_;
+            double *grow = k < np_ ? gm_.data() + (size_t)k * np_ : nullptr;
+            for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
+                const int32_t x = loc_[g_.col[p]];
+                if (x < 0) continue;
+                row[x >> 6] |= uint64_t(1) << (x & 63);
+                if (grow && x < np_) grow[x] = vals_[p];
+            }
+        }
+        if ((int)levels_.size() < np_ + 2) levels_.resize(np_ + 2);
+        Level &top = levels_[0];
+        top.P.assign(W_, 0);
+        top.X.assign(W_, 0);
+        top.a.assign(np_, 0.0);
+        for (int k = 0; k < np_; ++k) top.P[k >> 6] |= uint64_t(1) << (k & 63);
+        for (int k = np_; k < nl_; ++k) top.X[k >> 6] |= uint64_t(1) << (k & 63);
+        for (int64_t p = g_.ptr[root]; p < g_.ptr[root + 1]; ++p) {
+            const int32_t x = loc_[g_.col[p]];
+            if (x >= 0 && x < np_) top.a[x] = vals_[p];
+        }
+        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = -1;
+        root_ = root;
+    }
+
+    bool should_stop() {
+        if (aborted_ || ctl_.stop.load(std::memory_order_relaxed)) return true;
+        if (ctl_.max_nodes > 0 && search_nodes_ > ctl_.max_nodes) {
+            aborted_ = true;  // this search alone exceeds the budget; the others go on
+            return true;
+        }
+        if ((nodes & 255) == 0) {
+            if (ctl_.timed && std::chrono::steady_clock::now() > ctl_.deadline) {
+                ctl_.halt(2);
+                return true;
+            }
+            if (interrupt && interrupt->check()) {
+                ctl_.halt(3);
+                return true;
+            }
+        }
+        return false;
+    }
+
+    // members_ (ascending) is a clique of weight w: offer it to its members, note the lower bounds.
+    void offer(double w) {
+        ++offered;
+        choice_.offer(tid_, members_.data(), members_.size(), w);
+        for (int32_t x : members_) raised.emplace_back(x, w);
+    }
+
+    // R (with the root) is a clique that no candidate extends.
+    void leaf(double w_upper) {
+        if ((int)R_.size() + 1 < min_size_) return;
+        if (w_upper < need_r() * (1.0 - kSlack)) return;
+        members_.clear();
+        members_.push_back(root_);
+        for (int32_t r : R_) members_.push_back(L_[r]);
+        std::sort(members_.begin(), members_.end());
+        const double w = choice_.weight(members_.data(), members_.size());
+        offer(w);
+        if (!targets_) {
+            *target_ = std::max(*target_, w);
+        } else {
+            for (int32_t x : members_)
+                if ((*targets_)[x] < w) (*targets_)[x] = w;
+        }
+    }
+
+    double need_r() const {
+        if (!targets_) return *target_;
+        double m = (*targets_)[root_];
+        for (int32_t r : R_) m = std::min(m, (*targets_)[L_[r]]);
+        return m;
+    }
+
+    // Can this branch (R, the colouring of P in lv, bound ub) hold a clique that someone needs? With
+    // one target: ub must reach it. With a target per node: ub must reach the target of a member of
+    // R, or, for some candidate z, the bound on the cliques through z must reach z's target (the same
+    // sum with z in its class and, in every other class, the best member adjacent to z).
+    bool wanted(const Level &lv, double wR, double ub) const {
+        if (!targets_) return ub >= *target_ * (1.0 - kSlack);
+        const std::vector<double> &t = *targets_;
+        if (ub >= need_r() * (1.0 - kSlack)) return true;
+        const int cnt = (int)lv.order.size();
+        for (int i = 0; i < cnt; ++i) {
+            const int z = lv.order[i];
+            const double tz = t[L_[z]];
+            if (!(ub >= tz * (1.0 - kSlack))) continue;  // infinite or out of reach anyway
+            const uint64_t *rz = adj_.data() + (size_t)z * W_;
+            double uz = wR + lv.val[i], best = 0.0;
+            int c = lv.col[0];
+            for (int j = 0; j < cnt; ++j) {
+                if (lv.col[j] != c) {
+                    uz += best;
+                    best = 0.0;
+                    c = lv.col[j];
+                }
+                const int x = lv.order[j];
+                if (rz[x >> 6] >> (x & 63) & 1) best = std::max(best, lv.val[j]);
+            }
+            uz += best;
+            if (uz >= tz * (1.0 - kSlack)) return true;
+        }
+        return false;
+    }
+
+    void expand(int depth, double wR) {
+        ++nodes;
+        ++search_nodes_;
+        if (should_stop()) return;
+        const size_t r_size = R_.size();
+        branch(depth, wR);
+        R_.resize(r_size);  // drop the vertices absorbed at this level
+    }
+
+    void branch(int depth, double wR) {
+        Level &lv = levels_[depth];
+        uint64_t *P = lv.P.data(), *X = lv.X.data();
+
+        int left = 0;
+        for (int w = 0; w < W_; ++w) left += popcount64(P[w]);
+        // A candidate adjacent to every other candidate is in every maximal clique of this branch:
+        // move it into R (near-cliques have many).
+        for (int w = 0; w < W_; ++w)
+            for (uint64_t bits = P[w]; bits; bits &= bits - 1) {
+                const int u = w * 64 + __builtin_ctzll(bits);
+                const uint64_t *ru = adj_.data() + (size_t)u * W_;
+                int c = 0;
+                for (int k = 0; k < W_; ++k) c += popcount64(P[k] & ru[k]);
+                if (c != left - 1) continue;
+                P[w] &= ~(uint64_t(1) << (u & 63));
+                --left;
+                for (int k = 0; k < W_; ++k) X[k] &= ru[k];
+                wR += lv.a[u];
+                const double *gu = gm_.data() + (size_t)u * np_;
+                for (int k = 0; k < W_; ++k)
+                    for (uint64_t b2 = P[k]; b2; b2 &= b2 - 1) {
+                        const int x = k * 64 + __builtin_ctzll(b2);
+                        lv.a[x] += gu[x];
+                    }
+                R_.push_back(u);
+            }
+        if (left == 0) {
+            for (int w = 0; w < W_; ++w)
+                if (X[w]) return;  // an excluded vertex extends R: not maximal, searched elsewhere
+            leaf(wR);
+            return;
+        }
+        // Greedy sequential colouring of P: classes are independent sets, listed class by class.
+        U_.assign(P, P + W_);
+        Q_.resize(W_);
+        lv.order.clear();
+        lv.col.clear();
+        int colour = 0;
+        while (left > 0) {
+            ++colour;
+            std::copy(U_.begin(), U_.end(), Q_.begin());
+            for (int w = 0; w < W_; ++w) {
+                while (Q_[w]) {
+                    const int u = w * 64 + __builtin_ctzll(Q_[w]);
+                    const uint64_t *ru = adj_.data() + (size_t)u * W_;
+                    for (int k = w; k < W_; ++k) Q_[k] &= ~ru[k];
+                    Q_[w] &= ~(uint64_t(1) << (u & 63));
+                    U_[w] &= ~(uint64_t(1) << (u & 63));
+                    lv.order.push_back(u);
+                    lv.col.push_back(colour);
+                    --left;
+                }
+            }
+        }
+        if ((int)R_.size() + 1 + colour < min_size_) return;
+        // The bound: over the colour classes in order, each member contributes attach(u) plus, for every
+        // earlier class, at most its heaviest edge into that class; a clique takes one member per class.
+        const int cnt = (int)lv.order.size();
+        lv.val.resize(cnt);
+        double ub = wR;
+        {
+            double curA = 0.0;
+            int cur = 0, class_start = 0;
+            for (int i = 0; i < cnt; ++i) {
+                const int u = lv.order[i];
+                if (lv.col[i] != cur) {
+                    ub += curA;
+                    curA = 0.0;
+                    cur = lv.col[i];
+                    class_start = i;
+                }
+                const double *gu = gm_.data() + (size_t)u * np_;
+                double beta = 0.0, best = 0.0;
+                int c = 1;
+                for (int j = 0; j < class_start; ++j) {
+                    if (lv.col[j] != c) {
+                        beta += best;
+                        best = 0.0;
+                        c = lv.col[j];
+                    }
+                    best = std::max(best, gu[lv.order[j]]);
+                }
+                beta += best;
+                lv.val[i] = lv.a[u] + beta;
+                curA = std::max(curA, lv.val[i]);
+            }
+            ub += curA;
+        }
+        if (!wanted(lv, wR, ub)) return;
+
+        // Pivot (Tomita): the vertex of P u X with the most neighbours in P. A maximal clique of this
+        // branch contains a non-neighbour of the pivot, so only those are branched on.
+        int pivot = -1, most = -1;
+        for (int w = 0; w < W_ && most < cnt; ++w)
+            for (uint64_t bits = P[w] | X[w]; bits; bits &= bits - 1) {
+                const int u = w * 64 + __builtin_ctzll(bits);
+                const uint64_t *ru = adj_.data() + (size_t)u * W_;
+                int c = 0;
+                for (int k = 0; k < W_; ++k) c += popcount64(P[k] & ru[k]);
+                if (c > most) {
+                    most = c;
+                    pivot = u;
+                    if (c == cnt) break;
+                }
+            }
+        const uint64_t *rp = adj_.data() + (size_t)pivot * W_;
+        Level &ch = levels_[depth + 1];
+        ch.P.resize(W_);
+        ch.X.resize(W_);
+        ch.a.resize(np_);
+        // Branch on the pivot's non-neighbours, heaviest colour classes last (as MCQ), i.e. in reverse
+        // colour order.
+        for (int i = cnt - 1; i >= 0; --i) {
+            const int u = lv.order[i];
+            if (u != pivot && (rp[u >> 6] >> (u & 63) & 1)) continue;
+            const uint64_t *ru = adj_.data() + (size_t)u * W_;
+            uint64_t *NP = ch.P.data(), *NX = ch.X.data();
+            P = lv.P.data();
+            X = lv.X.data();
+            for (int w = 0; w < W_; ++w) {
+                NP[w] = P[w] & ru[w];
+                NX[w] = X[w] & ru[w];
+            }
+            const double *gu = gm_.data() + (size_t)u * np_;
+            for (int w = 0; w < W_; ++w)
+                for (uint64_t bits = NP[w]; bits; bits &= bits - 1) {
+                    const int x = w * 64 + __builtin_ctzll(bits);
+                    ch.a[x] = lv.a[x] + gu[x];
+                }
+            R_.push_back(u);
+            expand(depth + 1, wR + lv.a[u]);
+            R_.pop_back();
+            if (aborted_ || ctl_.stop.load(std::memory_order_relaxed)) return;
+            P[u >> 6] &= ~(uint64_t(1) << (u & 63));
+            X[u >> 6] |= uint64_t(1) << (u & 63);
+        }
+    }
+};
+
+// Runs body(item, searcher) for item in [0, count) on the threads; the caller (thread 0) then waits for
+// the others where Ctrl-C can still be seen.
+template <class F>
+void run_parallel(int64_t count, int64_t chunk, int nthreads, std::vector<std::unique_ptr<Searcher>> &searchers,
+                  Control &ctl, Interrupt &interrupt, F &&body) {
+    DynamicRange range(0, count, chunk);
+    std::atomic<int> inside{0};
+    parallel_region(nthreads, [&](int tid) {
+        inside.fetch_add(1);
+        int64_t lo, hi;
+        while (!ctl.stop.load(std::memory_order_relaxed) && range.next(lo, hi))
+            for (int64_t k = lo; k < hi && !ctl.stop.load(std::memory_order_relaxed); ++k)
+                body(k, *searchers[tid]);
+        inside.fetch_sub(1);
+        if (tid == 0)
+            while (inside.load() > 0) {
+                if (interrupt.check()) ctl.halt(3);
+                std::this_thread::sleep_for(std::chrono::microseconds(200));
+            }
+    });
+}
+
+}  // namespace
+
+int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int min_size, const CliqueCaps &caps,
+                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice) {
+    cap_hit.clear();
+    search_nodes = 0;
+    if (min_size < 1) min_size = 1;
+    nthreads = resolve_threads(nthreads, g.n);
+    const int64_t n = g.n;
+
+    Control ctl;
+    ctl.max_nodes = caps.max_nodes;
+    if (caps.time_limit_s > 0) {
+        ctl.timed = true;
+        ctl.deadline = std::chrono::steady_clock::now() +
+                       std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                           std::chrono::duration<double>(caps.time_limit_s));
+    }
+    choice.start(nthreads);
+    Interrupt interrupt;
+    std::vector<std::unique_ptr<Searcher>> searchers;
+    for (int t = 0; t < nthreads; ++t) searchers.emplace_back(new Searcher(g, vals, min_size, choice, ctl, t));
+    searchers[0]->interrupt = &interrupt;
+    std::vector<double> lb(n, 0.0);
+    auto collect = [&]() {  // the lower bounds raised by the cliques offered so far (max: any order)
+        for (auto &s : searchers) {
+            for (auto [v, w] : s->raised) lb[v] = std::max(lb[v], w);
+            s->raised.clear();
+        }
+    };
+    auto degree = [&](int64_t v) { return g.ptr[v + 1] - g.ptr[v]; };
+
+    // 1. a greedy clique through every node; cliques from neighbouring seeds often coincide, so each
+    // distinct one is weighed and offered once (in node order: the count does not depend on threads)
+    run_parallel(n, 64, nthreads, searchers, ctl, interrupt, [&](int64_t v, Searcher &s) {
+        if (degree(v) + 1 >= min_size) s.greedy((int32_t)v);
+    });
+    {
+        std::vector<const std::vector<int32_t> *> all;
+        for (auto &s : searchers)
+            for (const auto &m : s->greedy_) all.push_back(&m);
+        std::sort(all.begin(), all.end(), [](const auto *a, const auto *b) { return *a < *b; });
+        all.erase(std::unique(all.begin(), all.end(), [](const auto *a, const auto *b) { return *a == *b; }),
+                  all.end());
+        Searcher &s0 = *searchers[0];
+        for (const auto *m : all) s0.offer_clique(*m, choice.weight(m->data(), m->size()));
+        for (auto &s : searchers) std::vector<std::vector<int32_t>>().swap(s->greedy_);
+    }
+    collect();
+
+    // 2. the heaviest clique overall, from the dense core outwards (serial: one shared target)
+    const std::vector<int32_t> order = degeneracy_order(g);
+    std::vector<int32_t> rank(n);
+    for (int64_t i = 0; i < n; ++i) rank[order[i]] = (int32_t)i;
+    double best = 0.0;
+    for (int64_t v = 0; v < n; ++v) best = std::max(best, lb[v]);
+    {
+        std::vector<int32_t> cand, excl;
+        Searcher &s = *searchers[0];
+        for (int64_t i = n - 1; i >= 0 && !ctl.stop.load(); --i) {
+            const int32_t v = order[i];
+            cand.clear();
+            excl.clear();
+            for (int64_t p = g.ptr[v]; p < g.ptr[v + 1]; ++p)
+                (rank[g.col[p]] > i ? cand : excl).push_back(g.col[p]);
+            std::sort(cand.begin(), cand.end(), [&](int32_t a, int32_t b) { return rank[a] < rank[b]; });
+            s.search(v, cand, excl, best);
+        }
+    }
+    collect();
+
+    const bool debug = std::getenv("FASTMAC_DEBUG_SEARCH") != nullptr;
+    int64_t step2_nodes = 0;
+    for (auto &s : searchers) step2_nodes += s->nodes;
+    // 3. the nodes whose lower bound is below the heaviest clique: one search over the maximal cliques
+    // again, now wanting a clique only where it beats the target of one of its members
+    std::vector<double> targets(n, INFINITY);
+    int64_t n_todo = 0;
+    for (int64_t v = 0; v < n; ++v)
+        if (degree(v) + 1 >= min_size && lb[v] < best * (1.0 - kSlack)) {
+            targets[v] = lb[v];
+            ++n_todo;
+        }
+    if (n_todo > 0) {
+        std::vector<int32_t> cand, excl;
+        Searcher &s = *searchers[0];
+        for (int64_t i = n - 1; i >= 0 && !ctl.stop.load(); --i) {
+            const int32_t v = order[i];
+            cand.clear();
+            excl.clear();
+            bool wanted = std::isfinite(targets[v]);
+            for (int64_t p = g.ptr[v]; p < g.ptr[v + 1]; ++p) {
+                const int32_t x = g.col[p];
+                if (rank[x] > i) {
+                    cand.push_back(x);
+                    wanted = wanted || std::isfinite(targets[x]);
+                } else {
+                    excl.push_back(x);
+                }
+            }
+            if (!wanted) continue;
+            std::sort(cand.begin(), cand.end(), [&](int32_t a, int32_t b) { return rank[a] < rank[b]; });
+            s.search_all(v, cand, excl, targets);
+        }
+    }
+
+    if (debug && std::getenv("FASTMAC_DEBUG_REPEAT")) {  // step 3 again, starting from the final targets
+        int64_t before = 0;
+        for (auto &s : searchers) before += s->nodes;
+        std::vector<double> t2(n, INFINITY);
+        for (int64_t v = 0; v < n; ++v) if (std::isfinite(targets[v])) t2[v] = targets[v];
+        std::vector<int32_t> cand, excl;
+        Searcher &s = *searchers[0];
+        for (int64_t i = n - 1; i >= 0; --i) {
+            const int32_t v = order[i];
+            cand.clear(); excl.clear();
+            bool wanted = std::isfinite(t2[v]);
+            for (int64_t p = g.ptr[v]; p < g.ptr[v + 1]; ++p) {
+                const int32_t x = g.col[p];
+                if (rank[x] > i) { cand.push_back(x); wanted = wanted || std::isfinite(t2[x]); } else excl.push_back(x);
+            }
+            if (!wanted) continue;
+            std::sort(cand.begin(), cand.end(), [&](int32_t a, int32_t b) { return rank[a] < rank[b]; });
+            s.search_all(v, cand, excl, t2);
+        }
+        int64_t after = 0;
+        for (auto &s : searchers) after += s->nodes;
+        std::fprintf(stderr, "repeat of step 3 with exact targets: %lld nodes\n", (long long)(after - before));
+    }
+    if (debug) {
+        int64_t all = 0;
+        for (auto &s : searchers) all += s->nodes;
+        std::fprintf(stderr, "heaviest: best %.6g, step 2 nodes %lld, step 3: %lld nodes to do, %lld nodes\n", best,
+                     (long long)step2_nodes, (long long)n_todo, (long long)(all - step2_nodes));
+    }
+    int64_t offered = 0;
+    bool capped = false;
+    for (auto &s : searchers) {
+        offered += s->offered;
+        search_nodes += s->nodes;
+        capped = capped || s->capped;
+    }
+    if (capped) ctl.halt(1);
+    switch (ctl.why.load()) {
+        case 1: cap_hit = "max_nodes=" + std::to_string(caps.max_nodes); break;
+        case 2: {
+            char buf[64];
+            std::snprintf(buf, sizeof buf, "time_limit=%gs", caps.time_limit_s);
+            cap_hit = buf;
+            break;
+        }
+        case 3: throw Interrupted();
+        default: break;
+    }
+    return offered;
+}
+
+}  // namespace fastmac

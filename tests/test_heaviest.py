@@ -1,0 +1,202 @@
+"""The branch-and-bound search (mac.search=bnb) selects exactly what node-guided selection over every
+maximal clique selects (mac.search=enumerate and the Python reference), ties included, on random graphs
+of every kind; its work budget is reproducible for any thread count; Ctrl-C stops it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import igraph
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fastmac_exp.backends import cpp, python_mac
+
+core = cpp.core()
+REPO = Path(__file__).resolve().parents[1]
+
+
+def reference(n: int, i: np.ndarray, j: np.ndarray, w: np.ndarray, k: int) -> list[tuple[int, ...]]:
+    """The Python reference: igraph's maximal cliques, canonical order, node-guided selection."""
+    g = sp.coo_matrix((np.r_[w, w], (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
+    cliques = python_mac.canonical_cliques(
+        igraph.Graph(n=n, edges=list(zip(i.tolist(), j.tolist()))).maximal_cliques(min=k)
+    )
+    return [tuple(c) for c in python_mac.select_cliques(cliques, g, n)] if cliques else []
+
+
+def selection(n, i, j, w, k, search, threads=1, **caps):
+    out = core.select_cliques(n, i, j, w, k, search=search, num_threads=threads, **caps)
+    return [tuple(c.tolist()) for c in out["cliques"]], out
+
+
+def graph(kind: str, n: int, seed: int, integer_weights: bool):
+    """Edges (i < j) and positive weights of a random graph of the given kind."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros((n, n), dtype=bool)
+    if kind == "sparse":
+        a = rng.random((n, n)) < rng.uniform(0.05, 0.2)
+    elif kind == "dense":
+        a = rng.random((n, n)) < rng.uniform(0.5, 0.8)
+    elif kind == "near_clique":  # a clique with a few missing edges, plus sparse outliers
+        core_n = int(rng.integers(min(6, n), min(n, 40) + 1))
+        a = rng.random((n, n)) < 0.05
+        a[:core_n, :core_n] = rng.random((core_n, core_n)) > rng.uniform(0.01, 0.1)
+    elif kind == "planted":  # several overlapping planted cliques in a sparse graph
+        a = rng.random((n, n)) < 0.08
+        for _ in range(int(rng.integers(2, 5))):
+            members = rng.choice(n, size=int(rng.integers(4, max(5, n // 3))), replace=False)
+            a[np.ix_(members, members)] = True
+    a = np.triu(a | a.T, 1)
+    i, j = np.nonzero(a)
+    if integer_weights:  # many cliques of exactly equal weight: the tie rule decides
+        w = rng.integers(1, 4, len(i)).astype(float)
+    else:  # like G: positive reals in a narrow band
+        w = rng.uniform(0.8, 1.2, len(i)) * 100.0
+    return i.astype(np.int64), j.astype(np.int64), w
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    kind=st.sampled_from(["sparse", "dense", "near_clique", "planted"]),
+    n=st.integers(6, 60),
+    seed=st.integers(0, 2**31 - 1),
+    k=st.sampled_from([3, 3, 4, 5]),
+    integer_weights=st.booleans(),
+)
+def test_branch_and_bound_selects_what_enumeration_selects(kind, n, seed, k, integer_weights):
+    i, j, w = graph(kind, n, seed, integer_weights)
+    want = reference(n, i, j, w, k)
+    enum, _ = selection(n, i, j, w, k, "enumerate")
+    assert enum == want
+    for threads in (1, 2):
+        got, out = selection(n, i, j, w, k, "bnb", threads)
+        assert got == want, (kind, n, seed, k, integer_weights, threads)
+        assert out["cap_hit"] == ""
+
+
+def second_order_weights(a: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """G = W * (W @ W) on the upper-triangle edges of a, with W in [0.9, 1] as MAC's KITTI kernel gives."""
+    full = a | a.T
+    w1 = np.triu(rng.uniform(0.9, 1.0, a.shape), 1)
+    w1 = (w1 + w1.T) * full
+    g = w1 * (w1 @ w1)
+    i, j = np.nonzero(a)
+    return g[i, j]
+
+
+@pytest.mark.parametrize("missing", [0, 3, 12, 24])
+def test_near_clique_of_hundred_nodes(missing):
+    """The shape high-pass sampling produces: a near-clique whose maximal cliques explode in number."""
+    rng = np.random.default_rng(missing)
+    n = 100
+    a = np.triu(np.ones((n, n), dtype=bool), 1)
+    pairs = np.argwhere(a)
+    drop = pairs[rng.choice(len(pairs), size=missing, replace=False)]
+    a[drop[:, 0], drop[:, 1]] = False
+    i, j = np.nonzero(a)
+    w = second_order_weights(a, rng)
+    got, out = selection(n, i, j, w, 3, "bnb", 2)
+    assert got == reference(n, i, j, w, 3)
+    if missing == 0:
+        assert got == [tuple(range(n))]
+
+
+def test_node_budget_is_reproducible_across_threads():
+    i, j, w = graph("dense", 60, seed=4, integer_weights=False)
+    full, out = selection(60, i, j, w, 3, "bnb")
+    assert out["cap_hit"] == "" and out["search_nodes"] > 50
+    budget = max(5, out["search_nodes"] // 20)
+    runs = [selection(60, i, j, w, 3, "bnb", t, max_nodes=budget) for t in (1, 2, 2)]
+    assert all(r[1]["cap_hit"] == f"max_nodes={budget}" for r in runs)
+    assert runs[0][0] == runs[1][0] == runs[2][0]
+    assert runs[0][1]["search_nodes"] == runs[1][1]["search_nodes"] == runs[2][1]["search_nodes"]
+
+
+def test_mac_default_search_is_branch_and_bound_and_agrees():
+    from tests.test_cpp_core import clustered
+
+    src, tgt, _, _ = clustered(400, 0.3, 0.002, seed=9, extent=3.0)
+    args = (src, tgt, "quadratic", 0.06, 0.1, 0.9, 0.1)
+    bnb = core.mac(*args, return_selected=True)
+    enum = core.mac(*args, search="enumerate", return_selected=True)
+    assert [tuple(c) for c in bnb["selected"]] == [tuple(c) for c in enum["selected"]]
+    np.testing.assert_array_equal(bnb["pose"], enum["pose"])
+    assert bnb["search_nodes"] > 0 and enum["search_nodes"] == 0
+    with pytest.raises(ValueError, match="search"):
+        core.mac(*args, search="fast")
+
+
+def test_weights_must_be_positive():
+    with pytest.raises(ValueError, match="positive"):
+        core.select_cliques(3, np.array([0, 1, 0]), np.array([1, 2, 2]), np.array([1.0, 0.0, 1.0]), 3)
+
+
+# a graph with ~2^40 maximal cliques: 40 disjoint missing edges in a clique of 100 (the enumeration
+# cannot finish; the default branch and bound takes milliseconds)
+EXPLODING = """
+import numpy as np, sys, time
+sys.path.insert(0, {repo!r})
+from fastmac_exp.backends import cpp
+n = 100
+a = np.triu(np.ones((n, n), dtype=bool), 1)
+a[np.arange(0, 80, 2), np.arange(1, 81, 2)] = False
+i, j = np.nonzero(a)
+w = np.random.default_rng(0).uniform(300, 500, len(i))
+print("ready", flush=True)
+try:
+    cpp.core().select_cliques(n, i, j, w, 3, search="enumerate")
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(130)
+print("finished", flush=True)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="sends SIGINT")
+def test_ctrl_c_stops_a_long_clique_search_within_a_second():
+    proc = subprocess.Popen(
+        [sys.executable, "-c", EXPLODING.format(repo=str(REPO))],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(1.0)  # well inside the search
+        assert proc.poll() is None, "the search should still be running"
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=10)
+        elapsed = time.perf_counter() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == 130 and proc.stdout.read().strip() == "interrupted"
+    assert elapsed < 1.5, f"took {elapsed:.2f} s to stop"
+
+
+def test_exploding_graph_is_fast_with_branch_and_bound():
+    """2^16 maximal cliques (16 disjoint missing edges in a clique of 100): a few thousand search nodes."""
+    n, pairs = 100, 16
+    a = np.triu(np.ones((n, n), dtype=bool), 1)
+    a[np.arange(0, 2 * pairs, 2), np.arange(1, 2 * pairs + 1, 2)] = False
+    i, j = np.nonzero(a)
+    w = second_order_weights(a, np.random.default_rng(0))
+    got, out = selection(n, i, j, w, 3, "bnb", 2)
+    enum, eout = selection(n, i, j, w, 3, "enumerate", 2)
+    assert eout["n_cliques"] == 2**pairs
+    assert got == enum
+    assert out["cap_hit"] == "" and out["search_nodes"] < 20_000
+    for c in got:  # one endpoint of each missing pair and every other vertex
+        members = set(c)
+        assert set(range(2 * pairs, n)) <= members
+        assert all((2 * p in members) != (2 * p + 1 in members) for p in range(pairs))
