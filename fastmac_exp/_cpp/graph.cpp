@@ -295,55 +295,6 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     return W;
 }
 
-std::vector<double> second_order(const Csr &W, int nthreads) {
-    nthreads = resolve_threads(nthreads, W.n);
-    const int64_t n = W.n;
-    std::vector<double> G(W.nnz(), 0.0);
-    const int64_t *ptr = W.ptr.data();
-    const int32_t *col = W.col.data();
-    const double *w = W.w.data();
-    DynamicRange rows(0, n, 8);
-    parallel_region(nthreads, [&](int) {
-        // Row i of W scattered densely; zero elsewhere (so k = i contributes nothing, W_ii = 0).
-        std::vector<double> dense(n, 0.0);
-        double *d = dense.data();
-        int64_t lo, hi;
-        while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
-            if (W.upper[i] == ptr[i + 1]) continue;
-            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = w[p];
-            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) {
-                // d[j] = W_ij is never read: j is not its own neighbour. Four partial sums keep the
-                // loop from waiting on one addition chain (most terms are zero: d is sparse).
-                const int32_t j = col[p];
-                const int64_t q0 = ptr[j], q1 = ptr[j + 1];
-                if (p + 2 < ptr[i + 1]) {  // rows j are scattered in memory: start fetching one ahead
-                    const int64_t r = ptr[col[p + 2]];
-                    for (int line = 0; line < 8; ++line) {
-                        __builtin_prefetch(col + r + 16 * line);
-                        __builtin_prefetch(w + r + 8 * line);
-                    }
-                }
-                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
-                int64_t q = q0;
-                for (; q + 4 <= q1; q += 4) {
-                    a0 += d[col[q]] * w[q];
-                    a1 += d[col[q + 1]] * w[q + 1];
-                    a2 += d[col[q + 2]] * w[q + 2];
-                    a3 += d[col[q + 3]] * w[q + 3];
-                }
-                for (; q < q1; ++q) a0 += d[col[q]] * w[q];
-                G[p] = w[p] * ((a0 + a1) + (a2 + a3));
-            }
-            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = 0.0;
-        }
-    });
-    // Mirror the upper entries into the lower parts (row j's lower part is ordered by i).
-    std::vector<int64_t> cursor(W.ptr.begin(), W.ptr.end() - 1);
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) G[cursor[col[p]]++] = G[p];
-    return G;
-}
-
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b) {
     const int32_t *first = W.col.data() + W.ptr[a];
     const int32_t *last = W.col.data() + W.ptr[a + 1];

@@ -51,7 +51,7 @@ constexpr double kSlack = 1e-9;  // bounds sum in another order than the canonic
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
 struct Control {
-    int64_t max_nodes = 0;  // per search (one root in step 2, one node in step 3)
+    int64_t max_nodes = 0;  // for steps 2 and 3 together (they run serially on one searcher)
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
     std::atomic<bool> stop{false};
@@ -82,7 +82,6 @@ class Searcher {
         setup(root, cand, excl);
         target_ = &target;
         targets_ = nullptr;
-        search_nodes_ = 0;
         aborted_ = false;
         R_.clear();
         expand(0, 0.0);
@@ -97,7 +96,6 @@ class Searcher {
         if ((int)cand.size() + 1 < min_size_) return;
         setup(root, cand, excl);
         targets_ = &targets;
-        search_nodes_ = 0;
         aborted_ = false;
         R_.clear();
         expand(0, 0.0);
@@ -176,7 +174,6 @@ class Searcher {
     int32_t root_ = 0;
     double *target_ = nullptr;             // one target for every node (search), or
     std::vector<double> *targets_ = nullptr;  // a target per node (search_all)
-    int64_t search_nodes_ = 0;
     bool aborted_ = false;
 
     void setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
@@ -218,8 +215,8 @@ class Searcher {
 
     bool should_stop() {
         if (aborted_ || ctl_.stop.load(std::memory_order_relaxed)) return true;
-        if (ctl_.max_nodes > 0 && search_nodes_ > ctl_.max_nodes) {
-            aborted_ = true;  // this search alone exceeds the budget; the others go on
+        if (ctl_.max_nodes > 0 && nodes > ctl_.max_nodes) {
+            aborted_ = true;  // the budget of the whole selection is spent (steps 2 and 3 are serial)
             return true;
         }
         if ((nodes & 255) == 0) {
@@ -300,7 +297,6 @@ class Searcher {
 
     void expand(int depth, double wR) {
         ++nodes;
-        ++search_nodes_;
         if (should_stop()) return;
         const size_t r_size = R_.size();
         branch(depth, wR);

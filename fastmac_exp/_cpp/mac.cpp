@@ -86,46 +86,20 @@ class SelectSink : public CliqueSink {
 }  // namespace
 
 Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) {
-    nthreads = resolve_threads(nthreads, W.n);
     const int64_t n = W.n;
     const int64_t *ptr = W.ptr.data();
-    const int32_t *col = W.col.data();
-    // Cube roots of G on its support; triangles (i < a < b) with all three G edges non-zero add
-    // cbrt(G_ia) cbrt(G_ib) cbrt(G_ab) to w_i, w_a and w_b.
+    // w_i = sum over neighbour pairs {a, b} of i with G_ab != 0 of (G_ia G_ib G_ab)^(1/3)
+    //     = 1/2 sum_a C_ia (C C)_ia with C = G^(1/3) on G's support: the second-order product of C.
     std::vector<double> C(G.size());
     for (size_t p = 0; p < G.size(); ++p) C[p] = G[p] != 0.0 ? std::cbrt(G[p]) : 0.0;
-    std::vector<std::vector<double>> tri_t(nthreads);
-    DynamicRange rows(0, n, 8);
-    parallel_region(nthreads, [&](int tid) {
-        std::vector<double> dense(n, 0.0);
-        std::vector<double> &tri = tri_t[tid];
-        tri.assign(n, 0.0);
-        int64_t lo, hi;
-        while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
-            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = C[p];
-            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) {
-                if (C[p] == 0.0) continue;
-                const int32_t a = col[p];
-                const double cia = C[p];
-                for (int64_t q = W.upper[a]; q < ptr[a + 1]; ++q) {
-                    const double cib = dense[col[q]];
-                    if (cib == 0.0 || C[q] == 0.0) continue;
-                    const double t = cia * cib * C[q];
-                    tri[i] += t;
-                    tri[a] += t;
-                    tri[col[q]] += t;
-                }
-            }
-            for (int64_t p = W.upper[i]; p < ptr[i + 1]; ++p) dense[col[p]] = 0.0;
-        }
-    });
+    const std::vector<double> S = masked_square(W, C, nthreads);
     Clustering out;
     out.cc.assign(n, 0.0);
     double tri_sum = 0.0, pair_sum = 0.0, cc_sum = 0.0;
     for (int64_t i = 0; i < n; ++i) {
         double tri = 0.0;
-        for (int t = 0; t < nthreads; ++t)
-            if (!tri_t[t].empty()) tri += tri_t[t][i];  // a worker may not have taken part
+        for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) tri += S[p];
+        tri *= 0.5;
         int64_t deg = 0;
         for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) deg += G[p] != 0.0;
         if (deg > 1) {
@@ -163,6 +137,7 @@ CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &v
 }
 
 MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &p, int nthreads) {
+    const int requested = nthreads;  // 0 = automatic: each stage decides by its own amount of work
     nthreads = resolve_threads(nthreads, n);
     if (n < 3) throw RegistrationFailed("need at least 3 correspondences, got " + std::to_string(n));
     if (!(p.inlier_threshold > 0)) throw std::invalid_argument("inlier_threshold must be positive");
@@ -173,7 +148,7 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     // ---- graph: W and G
     auto t0 = Clock::now();
     Csr W = first_order(src, tgt, n, p.graph, nthreads);
-    std::vector<double> G = second_order(W, nthreads);
+    std::vector<double> G = second_order(W, requested);
     res.t_graph = ms_since(t0);
     res.n_edges = W.n_edges();
     double gmax = 0.0;
@@ -190,9 +165,18 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     // ---- cliques: optional reduction (spec 2.5), then the search on G's support
     t0 = Clock::now();
     std::vector<char> good;  // empty = no reduction
-    // cc_i <= max G, so with max G <= 3 the condition min(otsu, avg, total) > 3 cannot hold.
-    if (p.reduction && n > 50 && gmax > 3.0 * (1.0 - 1e-12)) {
-        Clustering cl = clustering(W, G, nthreads);
+    // Each triangle term is (G_ia G_ib G_ab)^(1/3) <= (rowmax_i^2 gmax)^(1/3), so
+    // cc_i <= rowmax_i^(2/3) gmax^(1/3); when the mean of that bound is <= 3, avg <= 3 and the
+    // condition min(otsu, avg, total) > 3 cannot hold: the clustering coefficients are not needed.
+    double avg_bound = 0.0;
+    for (int64_t i = 0; i < n; ++i) {
+        double rowmax = 0.0;
+        for (int64_t q = W.ptr[i]; q < W.ptr[i + 1]; ++q) rowmax = std::max(rowmax, G[q]);
+        avg_bound += std::cbrt(rowmax * rowmax * gmax);
+    }
+    avg_bound /= (double)n;
+    if (p.reduction && n > 50 && avg_bound > 3.0 * (1.0 - 1e-9)) {
+        Clustering cl = clustering(W, G, requested);
         const double cmax = *std::max_element(cl.cc.begin(), cl.cc.end());
         if (cmax != 0.0 && std::min(cl.otsu, std::min(cl.avg, cl.total)) > 3.0) {
             const double m = std::max(cl.otsu, cl.total);
