@@ -1,7 +1,14 @@
 """Benchmark of the C++ core against the Python reference (MAC stages, sampling, memory, dense graphs).
 
     python benchmarks/bench_core.py [--quick] [--sizes 1000 5000] [--ratios 1 0.2] [--threads 0]
-                                    [--no-python] [--no-dense] [--json out.json]
+                                    [--no-python] [--no-dense] [--no-outdoor | --outdoor-only]
+                                    [--json out.json]
+
+Outdoor section (issue 11): for every outdoor pair in ../shared/data (KITTI, LiDAR, Apollo) and every
+synthetic KITTI-like pair, FPFH with 5,000 correspondences; then, end to end from the correspondences
+(sampling + MAC), medians of repeated runs: MAC@100% and FastMAC@20/@5 with the branch-and-bound
+selection (the default), and the same with the full enumeration of maximal cliques (one run, 10 s
+wall-clock cap), with the selected cliques compared. Then the ratios and the targets.
 
 For each correspondence source (synthetic 3DMatch-like scenes; FPFH matches of the real 3DMatch pair
 `3dm_redkitchen_4_to_0_teaser_fullres` when ../shared/data exists), each N and each sampling ratio:
@@ -316,6 +323,163 @@ def print_table(rows: list[Row], header: bool = True) -> None:
         )
 
 
+# ---------------------------------------------------------------------------------------------------
+# outdoor: real KITTI/LiDAR pairs and synthetic KITTI-like pairs, branch and bound against enumeration
+
+ENUM_CAP_S = 10.0
+
+
+def outdoor_pairs(quick: bool) -> list[tuple[str, Correspondences, np.ndarray]]:
+    """(name, 5,000 FPFH correspondences with labels, GT) of the outdoor pairs: real ones, then synthetic."""
+    from fastmac_exp.datasets.synthetic import SyntheticDataset
+    from fastmac_exp.datasets.user_pairs import SharedRealPairs
+    from fastmac_exp.descriptors.fpfh import FPFHDescriptor
+
+    describe = FPFHDescriptor(max_correspondences=5000)
+    out = []
+    sets = []
+    if (DATA / "pairs.json").exists():
+        sets.append(("real", SharedRealPairs(root=str(DATA), category="outdoor")))
+    else:
+        print(f"[outdoor] no shared data at {DATA}: real outdoor pairs skipped")
+    sets.append(("syn", SyntheticDataset(family="kitti", num_pairs=3 if quick else 8)))
+    for tag, ds in sets:
+        for i, name in enumerate(ds.names()):
+            pair = ds.load(i)
+            corr = describe(pair, np.random.default_rng(0))
+            pair.label(corr)
+            out.append((f"{tag}:{name}", corr, pair.gt))
+    return out
+
+
+@dataclass
+class OutdoorRow:
+    name: str
+    inlier_ratio: float
+    ms: dict[str, float] = field(default_factory=dict)  # method -> median ms end to end
+    cap: dict[str, str] = field(default_factory=dict)
+    same: dict[str, str] = field(default_factory=dict)  # ratio -> selection bnb == enumeration?
+    re_deg: dict[str, float] = field(default_factory=dict)
+    nodes: dict[str, int] = field(default_factory=dict)
+
+
+def outdoor_run(corr: Correspondences, ratio: float, search: str, reps: int, threads: int):
+    """Median ms of sampling + MAC, the last result and its selected cliques."""
+    from fastmac_exp.params import mac_params_for
+
+    params = mac_params_for("kitti", "fpfh", mac_overrides={"search": search})
+    if search == "enumerate":
+        params = replace(params, time_limit_s=ENUM_CAP_S)
+    core = cpp.core()
+    times, res = [], None
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        if ratio < 1:
+            s = sampler("cpp")
+            # the same draw every repeat, and for both searches, so that their selections compare
+            idx = s.sample(corr, ratio, params.graph, "kitti", np.random.default_rng(0)).indices
+        else:
+            idx = np.arange(len(corr))
+        kept = corr.subset(np.asarray(idx))
+        g = params.graph
+        res = core.mac(
+            kept.src, kept.tgt, g.kernel, g.alpha, g.tau, g.threshold, params.inlier_threshold,
+            min_clique_size=params.min_clique_size, search=search, max_nodes=params.max_nodes,
+            time_limit_s=params.time_limit_s, num_threads=threads, return_selected=True,
+        )  # fmt: skip
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times), res
+
+
+def bench_outdoor(args) -> list[OutdoorRow]:
+    t0 = time.perf_counter()
+    pairs = outdoor_pairs(args.quick)
+    print(f"\nOutdoor: {len(pairs)} pairs described (FPFH, 5,000 correspondences) in {time.perf_counter() - t0:.0f} s")
+    head = (
+        f"{'pair':34} {'inl%':>5} | {'MAC bnb':>8} {'MAC enum':>9} {'x':>5} | {'FM20 bnb':>8} {'FM20 enum':>9} "
+        f"{'x':>5} | {'FM5 bnb':>8} | {'FM20/MAC':>8} | same 100/20 | RE100 RE20"
+    )
+    print(head)
+    print("-" * len(head))
+    rows = []
+    for name, corr, gt in pairs:
+        row = OutdoorRow(name=name, inlier_ratio=float(corr.labels.mean()))
+        for ratio in (1.0, 0.2, 0.05):
+            key = {1.0: "100", 0.2: "20", 0.05: "5"}[ratio]
+            try:
+                ms, res = outdoor_run(corr, ratio, "bnb", args.reps, args.threads)
+            except FastMacError as exc:
+                row.cap[f"bnb{key}"] = f"failed: {exc}"
+                continue
+            row.ms[f"bnb{key}"] = ms
+            row.cap[f"bnb{key}"] = res["cap_hit"]
+            row.nodes[key] = int(res["search_nodes"])
+            row.re_deg[key] = rotation_error_deg(res["pose"][:3, :3], gt[:3, :3])
+            if ratio == 0.05:
+                continue
+            try:
+                ems, eres = outdoor_run(corr, ratio, "enumerate", 1, args.threads)
+            except FastMacError as exc:
+                row.cap[f"enum{key}"] = f"failed: {exc}"
+                continue
+            row.ms[f"enum{key}"] = ems
+            row.cap[f"enum{key}"] = eres["cap_hit"]
+            if eres["cap_hit"]:
+                row.same[key] = "capped"
+            else:
+                same = [tuple(c) for c in res["selected"]] == [tuple(c) for c in eres["selected"]]
+                row.same[key] = "yes" if same else "NO"
+        m = row.ms
+
+        def cell(k, w=8):
+            v = m.get(k, float("nan"))
+            txt = fmt(v, w)
+            return txt + ("*" if row.cap.get(k) else " ")
+
+        def ratio_cell(a, b):
+            return f"{m[b] / m[a]:5.1f}" if a in m and b in m and m[a] > 0 else "    -"
+
+        fm_over_mac = f"{m['bnb20'] / m['bnb100']:8.2f}" if "bnb20" in m and "bnb100" in m else "       -"
+        print(
+            f"{name[:34]:34} {100 * row.inlier_ratio:5.1f} | {cell('bnb100')}{cell('enum100', 8)} "
+            f"{ratio_cell('bnb100', 'enum100')} | {cell('bnb20')}{cell('enum20', 8)} "
+            f"{ratio_cell('bnb20', 'enum20')} | {cell('bnb5')} | {fm_over_mac} | "
+            f"{row.same.get('100', '-'):>4}/{row.same.get('20', '-'):<4}   | "
+            f"{row.re_deg.get('100', float('nan')):5.2f} {row.re_deg.get('20', float('nan')):5.2f}"
+        )
+        sys.stdout.flush()
+        rows.append(row)
+    print(
+        "ms = median wall time of sampling + MAC from the correspondences (bnb: branch-and-bound selection, the"
+    )
+    print(
+        f"default; enum: every maximal clique, one run, capped at {ENUM_CAP_S:g} s: '*' = a cap was hit); x ="
+    )
+    print("enum / bnb; same = identical selected cliques (capped: the enumeration did not finish).")
+    print()
+    print("Outdoor targets (medians over the pairs of each set)")
+    for tag, label in (("real:", "real KITTI/LiDAR/Apollo"), ("syn:", "synthetic KITTI-like")):
+        sel = [r for r in rows if r.name.startswith(tag)]
+        if not sel:
+            continue
+
+        def med(k, sel=sel):
+            vals = [r.ms[k] for r in sel if k in r.ms]
+            return statistics.median(vals) if vals else float("nan")
+
+        worst = max((max(r.ms.get("bnb100", 0), r.ms.get("bnb20", 0)) for r in sel), default=float("nan"))
+        print(
+            f"  {label} ({len(sel)} pairs): MAC@100 {med('bnb100'):.0f} ms (target < 150), FastMAC@20 "
+            f"{med('bnb20'):.0f} ms (target < 30), FastMAC@5 {med('bnb5'):.0f} ms; FastMAC@20 / MAC = "
+            f"{med('bnb20') / med('bnb100'):.2f}; enumeration / bnb: MAC {med('enum100') / med('bnb100'):.1f}x, "
+            f"FastMAC@20 {med('enum20') / med('bnb20'):.1f}x (enumeration capped at {ENUM_CAP_S:g} s); "
+            f"slowest pair {worst:.0f} ms"
+        )
+        disagree = [r.name for r in sel if "NO" in r.same.values()]
+        print(f"    selections identical where the enumeration finished: {'yes' if not disagree else disagree}")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="N up to 5000, ratios 1 and 0.2, fewer repeats")
@@ -326,6 +490,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=0, help="cpp threads (0 = automatic)")
     ap.add_argument("--no-python", action="store_true")
     ap.add_argument("--no-dense", action="store_true")
+    ap.add_argument("--no-outdoor", action="store_true", help="skip the outdoor section")
+    ap.add_argument("--outdoor-only", action="store_true", help="only the outdoor section")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
     sizes = args.sizes or ([1000, 2500, 5000] if args.quick else [1000, 2500, 5000, 10000, 50000])
@@ -336,6 +502,12 @@ def main(argv: list[str] | None = None) -> int:
         print(cpp.BUILD_HINT.format(why="import failed"))
         return 1
     core = cpp.core()
+    if args.outdoor_only:
+        args.reps = args.reps or 3
+        rows = bench_outdoor(args)
+        if args.json:
+            args.json.write_text(json.dumps([r.__dict__ for r in rows], indent=1, default=float))
+        return 0
     threads = args.threads or core.default_threads()
     print(
         f"fastmac_exp C++ core: {core.parallel_backend} backend, {threads} thread(s) "
@@ -445,8 +617,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"  50,000 {r.source} at ratio 0.05: peak RSS {r.peak_rss_mb / 1024:.2f} GiB (< 4), "
                 f"sampling {r.cpp['sampling']:.0f} ms + MAC on {r.k}: {r.cpp['mac']:.0f} ms"
             )
+    outdoor = [] if args.no_outdoor else bench_outdoor(args)
     if args.json:
-        args.json.write_text(json.dumps([r.__dict__ for r in rows], indent=1, default=float))
+        data = {"indoor": [r.__dict__ for r in rows], "outdoor": [r.__dict__ for r in outdoor]}
+        args.json.write_text(json.dumps(data, indent=1, default=float))
         print(f"rows written to {args.json}")
     return 0
 

@@ -110,3 +110,61 @@ def test_sigkill_mid_run_then_resume_gives_one_row_per_pair(tmp_path):
             assert r["t_total_ms"] == finished[r["pair"]]["t_total_ms"]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["pairs"] == 12 and summary["complete"]
+
+
+HARD_SCRIPT = """
+import sys
+import numpy as np
+sys.path.insert(0, {repo!r})
+from omegaconf import OmegaConf
+from fastmac_exp.experiment import run_experiment
+from fastmac_exp.types import Correspondences, Pair
+from tests import conftest
+
+class EasyThenHard(conftest.ListDataset):
+    # pair 1: 300 inliers whose noise makes about half of their pairs compatible (KITTI kernel): a
+    # random-graph-like core with an astronomical number of maximal cliques
+    def load(self, i):
+        if i == 0:
+            return super().load(i)
+        rng = np.random.default_rng(1)
+        src = rng.uniform(0, 40, (300, 3))
+        tgt = src + rng.normal(scale=0.08, size=(300, 3))
+        return Pair(name="hard", gt=np.eye(4), correspondences=Correspondences(src, tgt), family="kitti")
+conftest.EasyThenHard = EasyThenHard
+cfg = OmegaConf.create({{
+    "dataset": {{"_target_": "tests.conftest.EasyThenHard", "num_pairs": 2, "n": 200, "limit": None}},
+    "descriptor": {{"_target_": "fastmac_exp.descriptors.precomputed.PrecomputedDescriptor"}},
+    "sampler": {{"_target_": "fastmac_exp.samplers.NoSampler"}},
+    "backend": {{"_target_": "fastmac_exp.backends.cpp.CppBackend"}},
+    "ratio": 1.0, "seed": 0, "protocol": "honest", "fail_fast": False, "resume": None,
+    "workers": 1, "progress": False, "graph": {{}}, "tracker": {{}},
+    "mac": {{"search": "enumerate", "reduction": False, "max_cliques": 0, "time_limit_s": 0}},
+}})
+run_experiment(cfg, {run_dir!r})
+"""
+
+
+def test_ctrl_c_inside_a_clique_search_stops_the_run_and_keeps_finished_pairs(tmp_path):
+    run_dir = tmp_path / "run"
+    code = HARD_SCRIPT.format(repo=str(REPO), run_dir=str(run_dir))
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stderr=subprocess.PIPE, text=True)
+    log = run_dir / "results.jsonl"
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
+            time.sleep(0.05)
+        time.sleep(1.5)  # inside the unbounded enumeration of pair 1
+        assert proc.poll() is None, "the hard pair should still be running"
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+        elapsed = time.perf_counter() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode != 0
+    assert "KeyboardInterrupt" in proc.stderr.read()
+    assert elapsed < 1.5, f"Ctrl-C took {elapsed:.2f} s"
+    rows = read_rows(log)
+    assert [r["pair"] for r in rows] == ["pair_000"]
