@@ -62,12 +62,15 @@ def draw_proportional(scores: np.ndarray, k: int, rng: np.random.Generator) -> t
         raise InputError("sampling scores must be finite and non-negative")
     u = rng.random(len(scores))
     u = np.clip(u, np.finfo(np.float64).tiny, 1.0 - np.finfo(np.float64).epsneg)
-    keys = gumbel_keys(scores, u)
-    positive = int((scores > 0).sum())
-    zero_filled = max(0, k - positive)
-    # zero-score nodes rank after every positive one, uniformly among themselves
-    keys = np.where(scores > 0, keys, -1e300 - u)
-    order = np.argsort(-keys, kind="stable")[:k]
+    pos = np.flatnonzero(scores > 0)
+    zero_filled = max(0, k - len(pos))
+    # positive scores by their Gumbel keys; then, if needed, the zero-score nodes in the order of their
+    # own uniforms (a uniformly random order: ranking them by a key such as -1e300 - u would not be,
+    # since -1e300 - u == -1e300 in float64 and a stable sort then keeps index order)
+    order = pos[np.argsort(-gumbel_keys(scores[pos], u[pos]), kind="stable")][:k]
+    if zero_filled:
+        zero = np.flatnonzero(~(scores > 0))
+        order = np.concatenate([order, zero[np.argsort(u[zero], kind="stable")][:zero_filled]])
     return order.astype(np.int64), zero_filled
 
 

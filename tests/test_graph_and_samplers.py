@@ -120,6 +120,22 @@ def test_draw_is_proportional_and_without_replacement():
     assert idx[-1] == 0  # zero-score nodes come last
 
 
+def test_zero_score_fill_is_uniform():
+    """With 3 positive and 7 zero-score nodes, k = 5 takes the 3 and 2 of the 7, each pair equally often."""
+    scores = np.array([0, 2.0, 0, 0, 1.0, 0, 0, 3.0, 0, 0])
+    zeros = np.flatnonzero(scores == 0)
+    counts = np.zeros(len(scores))
+    trials = 7000
+    rng = np.random.default_rng(1)
+    for _ in range(trials):
+        idx, filled = draw_proportional(scores, 5, rng)
+        assert filled == 2 and set(idx[:3].tolist()) == {1, 4, 7}
+        counts[idx[3:]] += 1
+    # each zero-score node is one of the 2 fill-ins with probability 2/7 (binomial sd ~ 0.0054)
+    np.testing.assert_allclose(counts[zeros] / trials, 2 / 7, atol=0.025)
+    assert counts[zeros].min() > 0.2 * trials
+
+
 def test_minmax_gives_zero_to_the_minimum():
     np.testing.assert_allclose(minmax(np.array([2.0, 4.0, 3.0])), [0.0, 1.0, 0.5])
 
