@@ -394,10 +394,11 @@ def outdoor_run(corr: Correspondences, ratio: float, search: str, reps: int, thr
 def bench_outdoor(args) -> list[OutdoorRow]:
     t0 = time.perf_counter()
     pairs = outdoor_pairs(args.quick)
-    print(f"\nOutdoor: {len(pairs)} pairs described (FPFH, 5,000 correspondences) in {time.perf_counter() - t0:.0f} s")
+    took = time.perf_counter() - t0
+    print(f"\nOutdoor: {len(pairs)} pairs described (FPFH, 5,000 correspondences) in {took:.0f} s")
     head = (
-        f"{'pair':34} {'inl%':>5} | {'MAC bnb':>8} {'MAC enum':>9} {'x':>5} | {'FM20 bnb':>8} {'FM20 enum':>9} "
-        f"{'x':>5} | {'FM5 bnb':>8} | {'FM20/MAC':>8} | same 100/20 | RE100 RE20"
+        f"{'pair':34} {'inl%':>5} | {'MAC bnb':>8} {'MAC enum':>9} {'x':>5} | {'FM20 bnb':>8} "
+        f"{'FM20 enum':>9} {'x':>5} | {'FM5 bnb':>8} | {'FM20/MAC':>8} | same 100/20 | RE100 RE20"
     )
     print(head)
     print("-" * len(head))
@@ -431,12 +432,11 @@ def bench_outdoor(args) -> list[OutdoorRow]:
                 row.same[key] = "yes" if same else "NO"
         m = row.ms
 
-        def cell(k, w=8):
-            v = m.get(k, float("nan"))
-            txt = fmt(v, w)
+        def cell(k, w=8, m=m, row=row):
+            txt = fmt(m.get(k, float("nan")), w)
             return txt + ("*" if row.cap.get(k) else " ")
 
-        def ratio_cell(a, b):
+        def ratio_cell(a, b, m=m):
             return f"{m[b] / m[a]:5.1f}" if a in m and b in m and m[a] > 0 else "    -"
 
         fm_over_mac = f"{m['bnb20'] / m['bnb100']:8.2f}" if "bnb20" in m and "bnb100" in m else "       -"
@@ -449,12 +449,9 @@ def bench_outdoor(args) -> list[OutdoorRow]:
         )
         sys.stdout.flush()
         rows.append(row)
-    print(
-        "ms = median wall time of sampling + MAC from the correspondences (bnb: branch-and-bound selection, the"
-    )
-    print(
-        f"default; enum: every maximal clique, one run, capped at {ENUM_CAP_S:g} s: '*' = a cap was hit); x ="
-    )
+    print("ms = median wall time of sampling + MAC from the correspondences (bnb: branch-and-bound")
+    print(f"selection, the default; enum: every maximal clique, one run, capped at {ENUM_CAP_S:g} s: '*' = a")
+    print("cap was hit); x =")
     print("enum / bnb; same = identical selected cliques (capped: the enumeration did not finish).")
     print()
     print("Outdoor targets (medians over the pairs of each set)")
@@ -467,16 +464,18 @@ def bench_outdoor(args) -> list[OutdoorRow]:
             vals = [r.ms[k] for r in sel if k in r.ms]
             return statistics.median(vals) if vals else float("nan")
 
-        worst = max((max(r.ms.get("bnb100", 0), r.ms.get("bnb20", 0)) for r in sel), default=float("nan"))
+        worst = max(max(r.ms.get(k, 0) for k in ("bnb100", "bnb20", "bnb5")) for r in sel)
         print(
             f"  {label} ({len(sel)} pairs): MAC@100 {med('bnb100'):.0f} ms (target < 150), FastMAC@20 "
             f"{med('bnb20'):.0f} ms (target < 30), FastMAC@5 {med('bnb5'):.0f} ms; FastMAC@20 / MAC = "
-            f"{med('bnb20') / med('bnb100'):.2f}; enumeration / bnb: MAC {med('enum100') / med('bnb100'):.1f}x, "
+            f"{med('bnb20') / med('bnb100'):.2f}; enumeration / bnb: "
+            f"MAC {med('enum100') / med('bnb100'):.1f}x, "
             f"FastMAC@20 {med('enum20') / med('bnb20'):.1f}x (enumeration capped at {ENUM_CAP_S:g} s); "
             f"slowest pair {worst:.0f} ms"
         )
         disagree = [r.name for r in sel if "NO" in r.same.values()]
-        print(f"    selections identical where the enumeration finished: {'yes' if not disagree else disagree}")
+        verdict = "yes" if not disagree else disagree
+        print(f"    selections identical where the enumeration finished: {verdict}")
     return rows
 
 

@@ -1,10 +1,19 @@
 """The deterministic sampler of the paper's stochastic-vs-deterministic study (after Chen et al. 2015).
 
-Greedy E-optimal sampling: with V_K the K lowest-frequency eigenvectors of the graph shift, grow the
-sample set M one row at a time, adding the row r that maximises the smallest singular value of
-V_K[M + {r}]. Its cost is polynomial (an eigen-decomposition of the N x N shift plus O(N k^3 K)
-for the greedy loop), which is what the study measures against stochastic sampling; sizes above the
-caps are refused with a clear message rather than left to run for hours.
+Greedy E-optimal sampling: with V_K K eigenvectors of the graph shift, grow the sample set M one row at
+a time, adding the row r that maximises the smallest singular value of V_K[M + {r}].
+
+The band. Chen et al. sample band-limited (low-frequency) signals, so the first version took the K
+lowest-frequency eigenvectors. FastMAC's stochastic sampler is a high-pass one, and on real outdoor
+graphs the low band is degenerate: eigenvalue 1 of the shift has the multiplicity of the connected
+components (30 on a real KITTI subset, 28 of them isolated outliers), so the greedy pick went to
+isolated nodes (0-10 % inliers). `band="high"` (the default) takes the K highest-frequency
+eigenvectors, the band the high-pass sampler favours (55-75 % inliers on 1,000-row subsets of the real
+KITTI 95->94 pair, 18 % in the input); `band="low"` keeps the original.
+
+Its cost is polynomial (an eigen-decomposition of the N x N shift plus O(N k^3 K) for the greedy loop),
+which is what the study measures against stochastic sampling; sizes above the caps are refused with a
+clear message rather than left to run for hours.
 """
 
 from __future__ import annotations
@@ -56,12 +65,22 @@ def greedy_e_optimal(v: np.ndarray, k: int, chunk: int = 256) -> np.ndarray:
     return np.asarray(chosen, dtype=np.int64)
 
 
+BANDS = ("high", "low")
+
+
 class DeterministicSampler(Sampler):
-    """Greedy sampling that maximises sigma_min(Psi V_K); bandwidth K = the sample count by default."""
+    """Greedy sampling that maximises sigma_min(Psi V_K); bandwidth K = the sample count by default.
+
+    band: "high" = the K highest-frequency eigenvectors (the band of the high-pass sampler, the default),
+    "low" = the K lowest (Chen et al.'s band-limited signals).
+    """
 
     name = "deterministic"
 
-    def __init__(self, bandwidth: int = 0, max_n: int = 2500, max_k: int = 250) -> None:
+    def __init__(self, bandwidth: int = 0, band: str = "high", max_n: int = 2500, max_k: int = 250) -> None:
+        if band not in BANDS:
+            raise InputError(f"sampler.band must be one of {', '.join(BANDS)}, got {band!r}")
+        self.band = band
         self.bandwidth = bandwidth
         self.max_n = max_n
         self.max_k = max_k
@@ -79,7 +98,9 @@ class DeterministicSampler(Sampler):
         w = first_order(corr.src, corr.tgt, gp)
         wl = w.toarray() + np.eye(n)
         sog = wl * (wl @ wl)
-        vecs = graph_shift_eigenvectors(sog)
+        vecs = graph_shift_eigenvectors(sog)  # low frequency first
+        if self.band == "high":
+            vecs = vecs[:, ::-1]
         kk = self.bandwidth or k
         idx = greedy_e_optimal(vecs[:, :kk], k)
         return SampleResult(indices=idx)

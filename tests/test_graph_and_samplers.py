@@ -231,3 +231,25 @@ def test_torch_and_cpp_samplers_draw_the_same_samples():
     np.testing.assert_allclose(c.scores, a.scores, rtol=1e-6, atol=1e-9)
     np.testing.assert_array_equal(a.indices, b.indices)
     np.testing.assert_array_equal(a.indices, c.indices)
+
+
+def test_squared_option_squares_the_response():
+    corr, _ = make_correspondences(n=300, inlier_ratio=0.2, seed=5)
+    gp, fam = _ctx()
+    rng = np.random.default_rng(0)
+    plain = GraphFilterSampler("highpass", normalize="none").scores(corr, gp, fam, rng)
+    sq = GraphFilterSampler("highpass", normalize="none", squared=True).scores(corr, gp, fam, rng)
+    np.testing.assert_allclose(sq, plain**2, rtol=1e-12)
+    assert (plain > 1).any()  # so that squaring changes the ranking weights, not only the scale
+
+
+def test_deterministic_band_option():
+    from fastmac_exp.deterministic import DeterministicSampler
+
+    with pytest.raises(InputError, match="band"):
+        DeterministicSampler(band="middle")
+    corr, _ = make_correspondences(n=200, inlier_ratio=0.3, seed=2)
+    gp, fam = _ctx()
+    hi = DeterministicSampler(band="high").sample(corr, 0.05, gp, fam, np.random.default_rng(0)).indices
+    lo = DeterministicSampler(band="low").sample(corr, 0.05, gp, fam, np.random.default_rng(0)).indices
+    assert len(hi) == len(lo) == 10 and set(hi.tolist()) != set(lo.tolist())

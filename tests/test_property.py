@@ -6,17 +6,15 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from fastmac_exp.backends import cpp
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.errors import RegistrationFailed
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.transforms import random_rotation
 from fastmac_exp.types import Correspondences
-
-from fastmac_exp.backends import cpp
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
