@@ -184,7 +184,7 @@ def test_correspondences_on_small_pair(desc):
     assert corr.inlier_ratio > 0.2  # FPFH: about 0.08 on this pair
     mutual = OnnxDescriptor(mutual=True, max_correspondences=0)(pair, np.random.default_rng(0))
     assert 0 < len(mutual) and mutual.inlier_ratio >= corr.inlier_ratio
-    assert d.name == "fcgf" and d.graph_key == "fcgf"
+    assert d.name == "fcgf_lite" and d.graph_key == "fcgf"  # the model's name; FCGF's graph row
 
 
 def test_pair_without_clouds(desc):
@@ -204,10 +204,34 @@ def test_config_instantiates():
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    cfg = OmegaConf.to_container(OmegaConf.load(repo_root() / "conf" / "descriptor" / "fcgf.yaml"))
+    cfg = OmegaConf.to_container(OmegaConf.load(repo_root() / "conf" / "descriptor" / "fcgf_lite.yaml"))
     assert cfg.pop("graph_key") == "fcgf"
     d = instantiate(cfg)
     assert isinstance(d, OnnxDescriptor) and d.graph_key == "fcgf" and d.max_correspondences == 5000
+    assert d.name == "fcgf_lite"
+
+
+def test_fcgf_is_a_documented_alias_of_fcgf_lite(caplog):
+    """descriptor=fcgf still runs (existing sweeps) but is fcgf_lite, says so, and labels rows fcgf_lite."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from fastmac_exp.experiment import _choice, _strip
+
+    with initialize_config_dir(config_dir=str(repo_root() / "conf"), version_base="1.3"):
+        alias = compose(config_name="config", overrides=["descriptor=fcgf"])
+        lite = compose(config_name="config", overrides=["descriptor=fcgf_lite"])
+    a, b = _strip(alias.descriptor), _strip(lite.descriptor)
+    assert a.pop("alias") == "fcgf" and a == b
+    with caplog.at_level("WARNING"):
+        d = instantiate({k: v for k, v in _strip(alias.descriptor).items() if k != "graph_key"})
+    assert d.name == "fcgf_lite" and _choice(alias, "descriptor", d.name) == "fcgf_lite"
+    assert "not the published FCGF" in caplog.text
+
+
+def test_buffer_models_are_refused_here():
+    with pytest.raises(InputError, match="descriptor=buffer"):
+        OnnxDescriptor(repo_root() / "descriptors" / "buffer_3dmatch_desc.onnx")
 
 
 def test_pickles_for_parallel_workers(desc):

@@ -1,5 +1,7 @@
 """Learned-descriptor front end: multi-scale local patches in a local reference frame (LRF), embedded by
-an ONNX model (the shipped `descriptors/fcgf_lite.onnx`; its model card is descriptors/MODEL_CARD.md).
+an ONNX model (the shipped `descriptors/fcgf_lite.onnx`, a small network trained here, not the published
+FCGF; its model card is descriptors/MODEL_CARD.md). BUFFER's published models have their own front end
+(fastmac_exp/descriptors/buffer.py, `descriptor=buffer`).
 
 Runtime path: numpy/scipy preprocessing + onnxruntime inference; torch is never imported here (the
 training recipe `descriptors/train.py` imports this preprocessing, so training and runtime cannot drift).
@@ -35,6 +37,7 @@ The preprocessing parameters travel in the model's `metadata_props` (`fastmac.k`
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +48,8 @@ from scipy.spatial import cKDTree
 from fastmac_exp.descriptors.matching import correspondences_from_features
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
+
+log = logging.getLogger(__name__)
 
 DEFAULT_MODEL = "descriptors/fcgf_lite.onnx"
 MIN_POINTS = 10
@@ -313,9 +318,12 @@ class OnnxDescriptor:
     `k`, `radius_factor`, `support_factor` override the model's metadata (normally leave them None).
     `threads`: onnxruntime intra-op threads (default 1, the fastest on this shared 2-core machine; 0: all
     cores); `batch_size`: patches per onnxruntime run.
+    `name` (the results rows' descriptor label) is the model's `fastmac.name` metadata, else its file
+    name without extension ("fcgf_lite" for the shipped model). `alias`: the config name this front end
+    was reached under when that is not the model's name (conf/descriptor/fcgf.yaml); a warning says so.
     """
 
-    name = "fcgf"
+    name = "fcgf_lite"
     graph_key = "fcgf"
 
     def __init__(
@@ -329,6 +337,7 @@ class OnnxDescriptor:
         support_factor: float | None = None,
         threads: int = 1,
         batch_size: int = 8192,
+        alias: str | None = None,
     ) -> None:
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(
@@ -348,6 +357,16 @@ class OnnxDescriptor:
         self._overrides = {"k": k, "radius_factor": radius_factor, "support_factor": support_factor}
         self._session = None
         self._open()
+        self.alias = alias
+        if alias and alias != self.name:
+            log.warning(
+                "descriptor=%s is an alias of %s (%s), a model trained in this project, not the published "
+                "FCGF network; results are labelled %s",
+                alias,
+                self.name,
+                self.model_path.name,
+                self.name,
+            )
 
     # -- model loading and the contract
 
@@ -362,6 +381,17 @@ class OnnxDescriptor:
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
             raise InputError(f"ONNX descriptor model {self.model_path} could not be loaded: {exc}") from exc
         meta = sess.get_modelmeta().custom_metadata_map or {}
+        if meta.get(META_PREFIX + "preprocess", "lrf_patches") != "lrf_patches":
+            raise InputError(
+                f"ONNX descriptor model {self.model_path} expects the {meta[META_PREFIX + 'preprocess']!r} "
+                f"preprocessing, not this front end's LRF patches"
+                + (
+                    " (use descriptor=buffer descriptor.model=...)"
+                    if meta[META_PREFIX + "preprocess"] == "buffer"
+                    else ""
+                )
+            )
+        self.name = meta.get(META_PREFIX + "name") or self.model_path.stem
 
         def meta_value(key: str, cast, default):
             raw = meta.get(META_PREFIX + key)

@@ -1,0 +1,693 @@
+"""BUFFER's learned descriptor (Ao et al., CVPR 2023) through onnxruntime: `descriptor=buffer`.
+
+The published 3DMatch and KITTI weights, converted by `descriptors/buffer_export.py` into
+`descriptors/buffer_<family>_desc.onnx` (+ `buffer_3dmatch_ref.onnx`); model card
+`descriptors/BUFFER_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D preprocessing + onnxruntime (CPU);
+torch is never imported here.
+
+Describing the keypoints of one cloud (lengths are BUFFER's, in metres, times `scale`; `scale` = the pair's
+voxel size / the model's reference voxel (0.05 m for the 3DMatch model, 0.3 m for KITTI), i.e. 1 on the
+real indoor and LiDAR pairs):
+
+1. keypoints: the cloud voxel-downsampled at the pair's voxel (Open3D, exactly FPFH's keypoints);
+2. the patch cloud: the cloud voxel-downsampled at `downsample` (0.02 / 0.05 m), shuffled (seeded);
+3. reference axis (3DMatch model, `align = ref`): the patch cloud downsampled again at `voxel_size_0`
+   (0.035 m), shuffled, at most `max_points`; Open3D normals (30 nearest points) oriented towards the
+   origin; KPConv-style grids (barycentres on absolute grids of 0.07 and 0.14 m) and radius
+   neighbourhoods (0.07, 0.14, 0.28 m, nearest first, truncated to the calibrated limits K_l, shadow
+   index = the support count) -> the `Ref` ONNX model -> one axis a point, normalised and flipped so
+   that axis . p <= 0 (towards the sensor at the origin, as upstream); each keypoint takes the axis of
+   its nearest Ref point, re-oriented at the keypoint. The KITTI model (`align = none`) keeps the
+   sensor's z axis, as upstream does for KITTI;
+4. patch: the first `patch_points - 1` (511) points of the shuffled patch cloud within `des_r` (0.3 /
+   3.0 m) of the keypoint, padded with the keypoint, the keypoint in the last slot (pointnet2
+   ball_query semantics on a shuffled cloud = a uniform random subset of the ball);
+5. alignment: offsets from the keypoint rotated by the Rodrigues rotation taking the axis to +z
+   (upstream's RodsRotatFormula), divided by `des_r`;
+6. cells (`group_cells`): 3 radial x 7 elevation x 20 azimuth cell centres; each cell takes the first 10
+   patch points (in slot order) within 0.8 / 3 of its centre; empty slots are 0 and so is patch slot 0
+   (upstream's sphere_query masks the index 0); -> the `Desc` ONNX model -> 32-D unit vectors.
+
+Model contracts (checked when a model is opened; a mismatch raises InputError naming what was
+expected and what was found):
+
+- Desc: one float32 input of rank 3, `(M, 4200, 3)` with M dynamic (cells x 10 points x xyz), one
+  float32 output of rank 2, `(M, D)`; metadata `fastmac.preprocess = buffer` and the `buffer.*` keys of
+  `BufferParams`. Any model with this contract plugs in (`descriptor.model=path/to/desc.onnx`).
+- Ref: inputs `normals (N0, 3)`, `points0..2 (N_l, 3)` float32 and `neighbors0..2`, `pools0..1` (rank 2),
+  `upsamples0..1` (rank 1) int64; one float32 output `(N0, 3)`; metadata `buffer.neighbor_limits`,
+  `buffer.conv_radius`, `buffer.voxel_size_0`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fastmac_exp.descriptors.matching import correspondences_from_features
+from fastmac_exp.descriptors.onnx_descriptor import (
+    clean_points,
+    match_descriptors,
+    repo_root,
+    resolve_model_path,
+    voxel_down,
+)
+from fastmac_exp.errors import InputError
+from fastmac_exp.types import Correspondences, Pair
+
+log = logging.getLogger(__name__)
+
+MIN_POINTS = 10
+SHIPPED = {
+    "3dmatch": "descriptors/buffer_3dmatch_desc.onnx",
+    "kitti": "descriptors/buffer_kitti_desc.onnx",
+}
+FAMILY_MODEL = {"3dmatch": "3dmatch", "3dlomatch": "3dmatch", "kitti": "kitti"}
+REF_INPUTS = (
+    ("normals", "tensor(float)", 2),
+    ("points0", "tensor(float)", 2),
+    ("points1", "tensor(float)", 2),
+    ("points2", "tensor(float)", 2),
+    ("neighbors0", "tensor(int64)", 2),
+    ("neighbors1", "tensor(int64)", 2),
+    ("neighbors2", "tensor(int64)", 2),
+    ("pools0", "tensor(int64)", 2),
+    ("pools1", "tensor(int64)", 2),
+    ("upsamples0", "tensor(int64)", 1),
+    ("upsamples1", "tensor(int64)", 1),
+)
+
+
+@dataclass(frozen=True)
+class BufferParams:
+    """BUFFER's preprocessing (upstream ThreeDMatch/config.py, KITTI/config.py); lengths in metres at
+    scale 1. Stored as `buffer.<field>` metadata in the Desc model."""
+
+    family: str = "3dmatch"
+    align: str = "ref"  # "ref": Ref-network axis -> +z | "none": keep the sensor frame (KITTI)
+    reference_voxel: float = 0.05  # the pair voxel size at which the published sizes apply
+    downsample: float = 0.02
+    voxel_size_0: float = 0.035
+    max_points: int = 30000
+    des_r: float = 0.3
+    patch_points: int = 512
+    rad_n: int = 3
+    ele_n: int = 7
+    azi_n: int = 20
+    delta: float = 0.8
+    samples: int = 10
+    ref_model: str = ""  # the Ref model file, relative to the Desc model's folder (align = ref)
+
+    def __post_init__(self) -> None:
+        if self.align not in ("ref", "none"):
+            raise InputError(f"buffer.align must be 'ref' or 'none', got {self.align!r}")
+        lengths = (self.reference_voxel, self.downsample, self.voxel_size_0, self.des_r, self.delta)
+        if not all(v > 0 for v in lengths):
+            raise InputError(f"BUFFER lengths must be positive, got {lengths}")
+        if min(self.patch_points, self.rad_n, self.ele_n, self.azi_n, self.samples, self.max_points) < 1:
+            raise InputError("BUFFER counts must be positive")
+
+    @property
+    def cells(self) -> int:
+        return self.rad_n * self.ele_n * self.azi_n
+
+    @property
+    def size(self) -> int:
+        """K of the Desc input: cells x points a cell."""
+        return self.cells * self.samples
+
+    @classmethod
+    def from_metadata(cls, meta: dict, where: str) -> BufferParams:
+        values = {}
+        for f in fields(cls):
+            raw = meta.get("buffer." + f.name)
+            if raw is None:
+                continue
+            try:
+                values[f.name] = type(f.default)(raw)
+            except ValueError as exc:
+                raise InputError(f"model {where}: metadata buffer.{f.name}={raw!r} is not valid") from exc
+        return cls(**values)
+
+
+# ----------------------------------------------------------------------------------------------------
+# geometry (numpy / scipy / Open3D)
+
+
+def grid_subsample(points: np.ndarray, dl: float) -> np.ndarray:
+    """KPConv's grid subsampling: the barycentre of the points in each cell of an absolute grid of
+    size `dl` (cells [k dl, (k+1) dl)); order of the cells is not significant."""
+    pts = np.asarray(points, dtype=np.float64)
+    origin = np.floor(pts.min(axis=0) / dl) * dl
+    ijk = np.floor((pts - origin) / dl).astype(np.int64)
+    dims = ijk.max(axis=0) + 1
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(counts)) for k in range(3)], axis=1)
+    return out / counts[:, None]
+
+
+def radius_neighbors(queries: np.ndarray, supports: np.ndarray, radius: float, limit: int) -> np.ndarray:
+    """KPConv's neighbour matrix: per query the supports within `radius`, nearest first, at most `limit`;
+    width = min(limit, the largest count); missing slots hold len(supports) (the shadow index)."""
+    tree = cKDTree(supports)
+    k = max(1, min(int(limit), len(supports)))
+    _, idx = tree.query(queries, k=k, distance_upper_bound=radius)
+    idx = idx.reshape(len(queries), k).astype(np.int64)
+    width = int((idx < len(supports)).sum(axis=1).max()) if len(idx) else 1
+    return np.ascontiguousarray(idx[:, : max(1, min(width, k))])
+
+
+def oriented_normals(points: np.ndarray) -> np.ndarray:
+    """Open3D normals (30 nearest points, Open3D's default) oriented towards the origin (the sensor)."""
+    from fastmac_exp._open3d import o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
+    pcd.estimate_normals()
+    pcd.orient_normals_towards_camera_location(np.zeros(3))
+    return np.asarray(pcd.normals, dtype=np.float64)
+
+
+def ref_inputs(points: np.ndarray, normals: np.ndarray, voxel0: float, conv_radius: float, limits) -> dict:
+    """The Ref model's inputs for one cloud (its finest layer = `points`)."""
+    r0 = voxel0 * conv_radius
+    p = [np.asarray(points, dtype=np.float64)]
+    p.append(grid_subsample(p[0], 2 * r0 / conv_radius))
+    p.append(grid_subsample(p[1], 4 * r0 / conv_radius))
+    r = [r0, 2 * r0, 4 * r0]
+    feed = {"normals": np.ascontiguousarray(normals, dtype=np.float32)}
+    for layer in range(3):
+        feed[f"points{layer}"] = p[layer].astype(np.float32)
+        feed[f"neighbors{layer}"] = radius_neighbors(p[layer], p[layer], r[layer], limits[layer])
+    for layer in range(2):
+        feed[f"pools{layer}"] = radius_neighbors(p[layer + 1], p[layer], r[layer], limits[layer])
+        feed[f"upsamples{layer}"] = np.ascontiguousarray(
+            radius_neighbors(p[layer], p[layer + 1], 2 * r[layer], limits[layer])[:, 0]
+        )
+    return feed
+
+
+def align_rotations(axes: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) matrices R with `offsets @ R` = offsets rotated so that each unit axis becomes +z
+    (upstream RodsRotatFormula(axis, z) and `delta_x @ R`). An axis exactly on -z stays unrotated, as
+    upstream; the arccos argument is clipped to [-1, 1] (upstream would give NaN for |a_z| > 1 by
+    rounding)."""
+    a = np.asarray(axes, dtype=np.float64)
+    c = np.stack([a[:, 1], -a[:, 0], np.zeros(len(a))], axis=1)  # a x z
+    theta = np.arccos(np.clip(a[:, 2] / np.maximum(np.linalg.norm(a, axis=1), 1e-12), -1.0, 1.0))
+    c /= np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
+    k = np.zeros((len(a), 3, 3))
+    k[:, 0, 1], k[:, 0, 2] = -c[:, 2], c[:, 1]
+    k[:, 1, 0], k[:, 1, 2] = c[:, 2], -c[:, 0]
+    k[:, 2, 0], k[:, 2, 1] = -c[:, 1], c[:, 0]
+    eye = np.eye(3)[None]
+    r = eye + np.sin(theta)[:, None, None] * k + (1 - np.cos(theta))[:, None, None] * (k @ k)
+    return r.transpose(0, 2, 1)
+
+
+def pca_axes(offsets: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Upstream's axis when no Ref axis is given (cal_Z_axis): the least singular vector of the patch's
+    uncentred scatter about the keypoint, flipped so that axis . keypoint <= 0. (M, 3)."""
+    cov = np.einsum("mki,mkj->mij", offsets, offsets)
+    _, vecs = np.linalg.eigh(cov)
+    z = vecs[:, :, 0]
+    flip = np.einsum("ij,ij->i", z, centres) > 0
+    z[flip] *= -1
+    return z
+
+
+def cut_patches(
+    cloud: np.ndarray, tree: cKDTree, keypoints: np.ndarray, radius: float, k: int, workers: int = 1
+):
+    """`(M, k, 3)` patches: the first k-1 points (in `cloud` order) within `radius` of each keypoint,
+    padded with the keypoint, the keypoint itself in the last slot."""
+    lists = tree.query_ball_point(keypoints, radius, return_sorted=True, workers=workers)
+    out = np.repeat(np.asarray(keypoints, dtype=np.float64)[:, None, :], k, axis=1)
+    for i, nb in enumerate(lists):
+        n = min(len(nb), k - 1)
+        if n:
+            out[i, :n] = cloud[nb[:n]]
+    return out
+
+
+class CellTable:
+    """Candidate cells for `group_cells`: for each voxel of a G^3 grid over [-1, 1]^3, the cells whose
+    ball (radius r around its centre) meets the voxel, as CSR arrays (exact test afterwards)."""
+
+    def __init__(self, centres: np.ndarray, radius: float, grid: int = 48) -> None:
+        self.g, self.h = grid, 2.0 / grid
+        margin = radius + 1e-5
+        keys, cells = [], []
+        for v, c in enumerate(centres):
+            lo = np.clip(np.floor((c - margin + 1) / self.h).astype(int), 0, grid - 1)
+            hi = np.clip(np.floor((c + margin + 1) / self.h).astype(int), 0, grid - 1)
+            ax = [np.arange(lo[d], hi[d] + 1) for d in range(3)]
+            ijk = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+            box_lo = ijk * self.h - 1
+            near = np.clip(c, box_lo, box_lo + self.h)
+            ok = ((near - c) ** 2).sum(axis=1) < margin * margin
+            ijk = ijk[ok]
+            keys.append((ijk[:, 0] * grid + ijk[:, 1]) * grid + ijk[:, 2])
+            cells.append(np.full(len(ijk), v, dtype=np.int16))
+        key = np.concatenate(keys)
+        cell = np.concatenate(cells)
+        order = np.argsort(key, kind="stable")  # cells ascending within a voxel
+        self.cells = cell[order]
+        self.ptr = np.zeros(grid**3 + 1, dtype=np.int64)
+        np.cumsum(np.bincount(key, minlength=grid**3), out=self.ptr[1:])
+
+
+_TABLES: dict[tuple, tuple[np.ndarray, CellTable]] = {}
+_TABLES_LOCK = threading.Lock()
+
+
+def cell_geometry(params: BufferParams) -> tuple[np.ndarray, np.float32, CellTable]:
+    """Cell centres (float32, unit radius), the squared cell radius (float32) and the candidate table."""
+    key = (params.rad_n, params.ele_n, params.azi_n, params.delta)
+    with _TABLES_LOCK:
+        if key not in _TABLES:
+            beta = np.linspace(0, np.pi, params.ele_n, endpoint=False) + np.pi / params.ele_n / 2
+            alpha = np.linspace(0, 2 * np.pi, params.azi_n, endpoint=False) + np.pi / params.azi_n
+            b, a = np.meshgrid(beta, alpha, indexing="ij")
+            unit = np.stack([np.sin(b) * np.cos(a), np.sin(b) * np.sin(a), np.cos(b)], -1).reshape(-1, 3)
+            shells = np.arange(params.rad_n) / params.rad_n + 1 / (2 * params.rad_n)
+            centres = (shells[:, None, None] * unit[None]).reshape(-1, 3).astype(np.float32)
+            radius = float(np.float32(params.delta / params.rad_n))
+            _TABLES[key] = (centres, CellTable(centres.astype(np.float64), radius))
+        centres, table = _TABLES[key]
+    r = np.float32(params.delta / params.rad_n)
+    return centres, np.float32(r * r), table
+
+
+def group_cells(aligned: np.ndarray, params: BufferParams, chunk: int = 96) -> np.ndarray:
+    """Upstream's sphere_query on aligned patches `(M, P, 3)` (units of des_r) -> `(M, cells * samples, 3)`
+    float32: per cell (radial-major, then elevation, azimuth) the first `samples` patch points in slot
+    order whose squared distance to the cell centre is below (delta / rad_n)^2 (float32, as the CUDA
+    kernel), empty slots 0, patch slot 0 contributing 0 (upstream masks index 0)."""
+    centres, r2, table = cell_geometry(params)
+    m_all, p_n = aligned.shape[:2]
+    ncell, ns = params.cells, params.samples
+    if m_all == 0:
+        return np.zeros((0, ncell * ns, 3), dtype=np.float32)
+    if chunk * ncell >= 65536:
+        chunk = max(1, 65535 // ncell)
+    pts = np.ascontiguousarray(aligned, dtype=np.float32)
+    values = pts.copy()
+    values[:, 0] = 0.0
+    out = np.zeros((m_all, ncell, ns, 3), dtype=np.float32)
+    cx, cy, cz = (np.ascontiguousarray(centres[:, d]) for d in range(3))
+    g, inv_h = table.g, np.float32(1.0 / table.h)
+    for s in range(0, m_all, chunk):
+        p = pts[s : s + chunk].reshape(-1, 3)
+        n = len(p)
+        ijk = ((p + np.float32(1.0)) * inv_h).astype(np.int32)
+        np.clip(ijk, 0, g - 1, out=ijk)
+        cid = (ijk[:, 0] * g + ijk[:, 1]) * g + ijk[:, 2]
+        start = table.ptr[cid]
+        cnt = table.ptr[cid + 1] - start
+        rep = np.repeat(np.arange(n, dtype=np.int32), cnt)
+        idx = np.arange(len(rep), dtype=np.int64) + np.repeat(start - (np.cumsum(cnt) - cnt), cnt)
+        cell = table.cells[idx]
+        dx = p[:, 0][rep] - cx[cell]
+        dy = p[:, 1][rep] - cy[cell]
+        dz = p[:, 2][rep] - cz[cell]
+        ok = (dx * dx + dy * dy + dz * dz) < r2
+        rep, cell = rep[ok], cell[ok]
+        if not len(rep):
+            continue
+        m = rep // p_n
+        key = (m * ncell + cell).astype(np.uint16)
+        order = np.argsort(key, kind="stable")  # radix sort; slot order kept within a cell
+        ks = key[order]
+        first = np.empty(len(ks), dtype=bool)
+        first[0] = True
+        np.not_equal(ks[1:], ks[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        rank = np.arange(len(ks)) - starts[np.cumsum(first) - 1]
+        keep = rank < ns
+        o = order[keep]
+        mm, jj = m[o], rep[o] - m[o] * p_n
+        out[s + mm, cell[o], rank[keep]] = values[s + mm, jj]
+    return out.reshape(m_all, ncell * ns, 3)
+
+
+# ----------------------------------------------------------------------------------------------------
+# ONNX models
+
+
+def _session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = threads
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
+        raise InputError(f"BUFFER model {path} could not be loaded: {exc}") from exc
+
+
+def _io_str(items) -> str:
+    return ", ".join(f"{i.name!r}: {i.type} ({', '.join(str(d) for d in i.shape)})" for i in items) or "none"
+
+
+def check_desc_contract(sess, path: Path, params: BufferParams) -> tuple[str, int | None]:
+    """(input name, output dim or None); InputError when the Desc model does not fit its contract."""
+    ins, outs = sess.get_inputs(), sess.get_outputs()
+    problems = []
+    if len(ins) != 1:
+        problems.append(f"{len(ins)} inputs")
+    else:
+        i = ins[0]
+        if i.type != "tensor(float)":
+            problems.append(f"input {i.name!r} has type {i.type}")
+        if len(i.shape) != 3:
+            problems.append(f"input {i.name!r} has rank {len(i.shape)}")
+        else:
+            if isinstance(i.shape[0], int):
+                problems.append(f"input {i.name!r} has a fixed batch dimension {i.shape[0]}")
+            if isinstance(i.shape[1], int) and i.shape[1] != params.size:
+                problems.append(f"input {i.name!r} has K = {i.shape[1]}, the cells hold {params.size}")
+            if isinstance(i.shape[2], int) and i.shape[2] != 3:
+                problems.append(f"input {i.name!r} has {i.shape[2]} channels, expected 3 (xyz)")
+    if len(outs) != 1:
+        problems.append(f"{len(outs)} outputs")
+    elif outs[0].type != "tensor(float)" or len(outs[0].shape) != 2:
+        problems.append(f"output {outs[0].name!r} is {outs[0].type} of rank {len(outs[0].shape)}")
+    if problems:
+        raise InputError(
+            f"BUFFER descriptor model {path} does not fit the contract ({'; '.join(problems)}). Expected one "
+            f"float32 input (M, {params.size}, 3) with M dynamic and one float32 output (M, D); found "
+            f"inputs [{_io_str(ins)}] and outputs [{_io_str(outs)}]"
+        )
+    d = outs[0].shape[1]
+    return ins[0].name, d if isinstance(d, int) else None
+
+
+def check_ref_contract(sess, path: Path) -> None:
+    ins = {i.name: i for i in sess.get_inputs()}
+    outs = sess.get_outputs()
+    problems = []
+    for name, typ, rank in REF_INPUTS:
+        i = ins.pop(name, None)
+        if i is None:
+            problems.append(f"no input {name!r}")
+        elif i.type != typ or len(i.shape) != rank:
+            problems.append(f"input {name!r} is {i.type} of rank {len(i.shape)}")
+    if ins:
+        problems.append(f"unexpected inputs {sorted(ins)}")
+    if len(outs) != 1 or outs[0].type != "tensor(float)" or len(outs[0].shape) != 2:
+        problems.append("not one float32 output of rank 2")
+    if problems:
+        want = ", ".join(f"{n} ({t}, rank {r})" for n, t, r in REF_INPUTS)
+        raise InputError(
+            f"BUFFER reference-axis model {path} does not fit the contract ({'; '.join(problems)}). "
+            f"Expected inputs {want} and one float32 output (N0, 3); found inputs "
+            f"[{_io_str(sess.get_inputs())}] and outputs [{_io_str(outs)}]"
+        )
+
+
+class BufferModel:
+    """One family's Desc (+ Ref) sessions, their parameters and contracts."""
+
+    def __init__(self, desc_path: Path, ref_path: str | None, threads: int) -> None:
+        self.desc_path = desc_path
+        self.threads = threads
+        self.desc = _session(desc_path, threads)
+        meta = self.desc.get_modelmeta().custom_metadata_map or {}
+        if meta.get("fastmac.preprocess") != "buffer":
+            raise InputError(
+                f"model {desc_path} is not a BUFFER descriptor model (its metadata lacks "
+                f"fastmac.preprocess=buffer); use descriptor=fcgf_lite for LRF patch models"
+            )
+        self.params = BufferParams.from_metadata(meta, str(desc_path))
+        self.metadata = dict(meta)
+        self.input_name, self.output_dim = check_desc_contract(self.desc, desc_path, self.params)
+        self.ref = None
+        self.ref_path = None
+        if self.params.align == "ref":
+            name = ref_path or self.params.ref_model
+            if not name:
+                raise InputError(f"model {desc_path} aligns by a Ref model but names none (buffer.ref_model)")
+            p = Path(name)
+            self.ref_path = p if p.is_absolute() or ref_path else desc_path.parent / p
+            self.ref_path = resolve_model_path(self.ref_path)
+            self.ref = _session(self.ref_path, threads)
+            check_ref_contract(self.ref, self.ref_path)
+            rmeta = self.ref.get_modelmeta().custom_metadata_map or {}
+            try:
+                self.limits = tuple(int(v) for v in rmeta["buffer.neighbor_limits"].split(","))
+                self.conv_radius = float(rmeta["buffer.conv_radius"])
+                self.voxel0 = float(rmeta["buffer.voxel_size_0"])
+            except (KeyError, ValueError) as exc:
+                raise InputError(
+                    f"Ref model {self.ref_path}: metadata buffer.neighbor_limits / conv_radius / "
+                    f"voxel_size_0 missing or invalid ({exc})"
+                ) from exc
+            if len(self.limits) != 3:
+                raise InputError(f"Ref model {self.ref_path}: 3 neighbour limits expected, got {self.limits}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# the front end
+
+
+class BufferDescriptor:
+    """BUFFER's published descriptor (Ref axis + cylindrical patch network) through onnxruntime.
+
+    `model`: "auto" (the pair's family picks the shipped 3DMatch or KITTI model: 3dmatch/3dlomatch ->
+    3DMatch, kitti -> KITTI), "3dmatch", "kitti", or the path of a Desc model meeting the contract (its
+    Ref model from its metadata unless `ref_model` is given). Keypoints: the cloud voxel-downsampled at
+    `voxel_size` (None: the pair's), as FPFH. `scale`: BUFFER's lengths are multiplied by it (None: the
+    pair's voxel size / the model's reference voxel). Matching, cap and labels as the other front ends
+    (`max_correspondences` random subset, one-way nearest neighbour unless `mutual`).
+    `threads`: onnxruntime intra-op threads (0: all cores); `batch_size`: keypoints per run; `seed`:
+    the shuffles (upstream shuffles at random; fixed here so a cloud is always described the same way);
+    `progress`: a progress bar over each cloud's keypoints. `axis`: None = the model's (`ref` for the
+    3DMatch model, `none` for KITTI); `pca` = upstream's own fallback (cal_Z_axis, the patch's normal),
+    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better).
+    """
+
+    name = "buffer"
+    graph_key = "spinnet"
+
+    def __init__(
+        self,
+        model: str = "auto",
+        ref_model: str | None = None,
+        voxel_size: float | None = None,
+        scale: float | None = None,
+        max_correspondences: int = 5000,
+        mutual: bool = False,
+        threads: int = 0,
+        batch_size: int = 64,
+        seed: int = 0,
+        progress: bool = True,
+        axis: str | None = None,
+    ) -> None:
+        if voxel_size is not None and not voxel_size > 0:
+            raise InputError(f"buffer voxel_size must be positive or None (the pair's), got {voxel_size}")
+        if scale is not None and not scale > 0:
+            raise InputError(f"buffer scale must be positive or None (from the voxel size), got {scale}")
+        if max_correspondences < 0:
+            raise InputError(f"max_correspondences must be >= 0 (0 = no cap), got {max_correspondences}")
+        if threads < 0 or batch_size < 1:
+            raise InputError(f"threads must be >= 0 and batch_size >= 1, got {threads}, {batch_size}")
+        self.model = str(model)
+        self.ref_model = ref_model
+        self.voxel_size = voxel_size
+        self.scale = scale
+        self.max_correspondences = int(max_correspondences)
+        self.mutual = bool(mutual)
+        self.threads = int(threads)
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.progress = bool(progress)
+        if axis not in (None, "ref", "pca", "none"):
+            raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
+        self.axis = axis
+        self._models: dict[str, BufferModel] = {}
+        self.last_timings: dict[str, float] = {}
+        if self.model != "auto":
+            self.load(self.model)
+
+    def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
+        state = self.__dict__.copy()
+        state["_models"] = {}
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
+    def model_path(self, which: str) -> Path:
+        """The Desc model file for "3dmatch", "kitti" or a path."""
+        return resolve_model_path(SHIPPED.get(which, which))
+
+    def load(self, which: str) -> BufferModel:
+        if which not in self._models:
+            self._models[which] = BufferModel(self.model_path(which), self.ref_model, self.threads)
+        return self._models[which]
+
+    def model_for(self, family: str) -> BufferModel:
+        if self.model != "auto":
+            return self.load(self.model)
+        if family not in FAMILY_MODEL:
+            raise InputError(
+                f"descriptor=buffer: no BUFFER model for family {family!r}; set descriptor.model"
+            )
+        return self.load(FAMILY_MODEL[family])
+
+    # -- description
+
+    def _axes(self, model: BufferModel, cloud: np.ndarray, keypoints: np.ndarray, rng) -> np.ndarray:
+        p = model.params
+        pts = voxel_down(cloud, p.voxel_size_0)
+        pts = pts[rng.permutation(len(pts))][: p.max_points]
+        if len(pts) < MIN_POINTS:
+            raise InputError(f"only {len(pts)} points at BUFFER's Ref grid ({p.voxel_size_0} m, scaled)")
+        feed = ref_inputs(pts, oriented_normals(pts), model.voxel0, model.conv_radius, model.limits)
+        axis = np.asarray(model.ref.run(None, feed)[0], dtype=np.float64)
+        axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+        _, nearest = cKDTree(pts).query(keypoints)
+        ax = axis[nearest]
+        flip = np.einsum("ij,ij->i", ax, keypoints) > 0
+        ax[flip] *= -1
+        return ax
+
+    def describe(
+        self, model: BufferModel, points: np.ndarray, keypoints: np.ndarray, scale: float, what: str = "cloud"
+    ) -> np.ndarray:
+        """Descriptors `(M, D)` float32 of `keypoints` (in the cloud's units) of the cloud `points`."""
+        import time
+
+        from tqdm import tqdm
+
+        p = model.params
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(self.seed)
+        pts = np.asarray(points, dtype=np.float64) / scale
+        kp = np.asarray(keypoints, dtype=np.float64) / scale
+        cloud = voxel_down(pts, p.downsample)
+        cloud = cloud[rng.permutation(len(cloud))]
+        t1 = time.perf_counter()
+        how = self.axis or p.align
+        if how == "ref" and model.ref is None:
+            raise InputError(f"BUFFER model {model.desc_path} has no Ref model; use axis=pca or none")
+        axes = self._axes(model, cloud, kp, rng) if how == "ref" else None
+        t2 = time.perf_counter()
+        tree = cKDTree(cloud)
+        m = len(kp)
+        bs = self.batch_size
+        starts = list(range(0, m, bs))
+
+        def prepare(s: int) -> np.ndarray:
+            k = kp[s : s + bs]
+            patch = cut_patches(cloud, tree, k, p.des_r, p.patch_points, workers=1) - k[:, None, :]
+            if how == "pca":
+                patch = patch @ align_rotations(pca_axes(patch, k))
+            elif axes is not None:
+                patch = patch @ align_rotations(axes[s : s + bs])
+            return group_cells(patch / p.des_r, p)
+
+        d = model.output_dim or 32
+        out = np.zeros((m, d), dtype=np.float32)
+        bar = tqdm(
+            total=m, desc=f"BUFFER {what}", unit="kp", leave=False, disable=not self.progress or m < bs * 4
+        )
+        t_prep = t_run = 0.0
+        # numpy prepares the next batch while onnxruntime runs this one (both release the GIL)
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = pool.submit(prepare, starts[0]) if starts else None
+            for n_i, s in enumerate(starts):
+                ta = time.perf_counter()
+                x = pending.result()
+                tb = time.perf_counter()
+                if n_i + 1 < len(starts):
+                    pending = pool.submit(prepare, starts[n_i + 1])
+                y = model.desc.run(None, {model.input_name: x})[0]
+                tc = time.perf_counter()
+                t_prep += tb - ta
+                t_run += tc - tb
+                if y.ndim != 2 or y.shape[0] != len(x):
+                    raise InputError(
+                        f"BUFFER model {model.desc_path} returned {y.shape} for {len(x)} patches"
+                    )
+                if y.shape[1] != d:
+                    out = np.zeros((m, y.shape[1]), dtype=np.float32) if s == 0 else out
+                    d = y.shape[1]
+                out[s : s + len(y)] = y
+                bar.update(len(y))
+        bar.close()
+        norm = np.linalg.norm(out, axis=1, keepdims=True)
+        out /= np.where(norm > 0, norm, 1.0)
+        self.last_timings = {
+            "clouds_s": t1 - t0,
+            "ref_s": t2 - t1,
+            "wait_for_patches_s": t_prep,
+            "network_s": t_run,
+            "total_s": time.perf_counter() - t0,
+            "keypoints": m,
+        }
+        return out
+
+    def features(
+        self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch", scale=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints `(M, 3)` (voxel downsampling at `voxel`) and their descriptors `(M, D)` float32."""
+        if voxel is None or not voxel > 0:
+            raise InputError(f"descriptor voxel size must be positive, got {voxel}")
+        model = self.model_for(family)
+        pts = clean_points(points, what)
+        kp = voxel_down(pts, voxel)
+        if len(kp) < MIN_POINTS:
+            raise InputError(
+                f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
+                f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
+            )
+        if scale is None:
+            scale = self.scale if self.scale is not None else voxel / model.params.reference_voxel
+        return kp, self.describe(model, pts, kp, scale, what)
+
+    def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
+        model = self.model_for(pair.family)
+        if self.scale is not None:
+            scale = self.scale
+        elif pair.voxel_size and pair.voxel_size > 0:
+            scale = pair.voxel_size / model.params.reference_voxel
+        else:
+            raise InputError(f"pair {pair.name!r} has no voxel size; set descriptor.scale for BUFFER")
+        return correspondences_from_features(_Bound(self, pair.family, scale), pair, rng, match_descriptors)
+
+
+class _Bound:
+    """The descriptor as `correspondences_from_features` sees it, with the pair's family and scale."""
+
+    def __init__(self, desc: BufferDescriptor, family: str, scale: float) -> None:
+        self.desc, self.family, self.scale = desc, family, scale
+        self.name = desc.name
+        self.voxel_size = desc.voxel_size
+        self.mutual = desc.mutual
+        self.max_correspondences = desc.max_correspondences
+
+    def features(self, points, voxel, what="cloud"):
+        return self.desc.features(points, voxel, what=what, family=self.family, scale=self.scale)
+
+
+__all__ = [
+    "BufferDescriptor",
+    "BufferParams",
+    "align_rotations",
+    "cut_patches",
+    "grid_subsample",
+    "group_cells",
+    "radius_neighbors",
+    "ref_inputs",
+    "repo_root",
+]
