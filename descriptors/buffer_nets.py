@@ -416,19 +416,18 @@ def _fold_bn(conv_w, conv_b, bn) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class DescExport(nn.Module):
-    """`DescReference` for ONNX: rotation by constants, point MLP as one MatMul, BatchNorm folded,
-    the 3-D radial convolution as a 2-D convolution over (channel x radius), elevation zero padding
-    inside Conv."""
+    """`DescReference` for ONNX: each cell's azimuth rotation folded into its point-MLP weights (one GEMM
+    a cell), the max over the cell's points taken before bias and ReLU, BatchNorm folded, the 3-D radial
+    convolution as a 2-D convolution over (channel x radius), elevation zero padding inside Conv."""
 
     def __init__(self, ref: DescReference) -> None:
         super().__init__()
-        rot = azimuth_rotations()
-        az = np.tile(np.arange(AZI_N), RAD_N * ELE_N)
-        self.register_buffer("cos", torch.tensor(rot[az, 0, 0], dtype=torch.float32).view(1, CELLS, 1))
-        self.register_buffer("sin", torch.tensor(rot[az, 1, 0], dtype=torch.float32).view(1, CELLS, 1))
+        rot = torch.from_numpy(azimuth_rotations()[np.tile(np.arange(AZI_N), RAD_N * ELE_N)])
         w, b = _fold_bn(ref.pnt_layer[0].weight, ref.pnt_layer[0].bias, ref.pnt_layer[1])
-        self.register_buffer("pnt_w", w.view(16, 3).t().contiguous())
-        self.register_buffer("pnt_b", b)
+        # rotate-then-project folded into one (3, 16) map per cell: (R_v p) . w = p . (R_v^T w)
+        per_cell = torch.einsum("vji,jc->vic", rot, w.view(16, 3).t().double())
+        self.register_buffer("pnt_w", per_cell.float().contiguous())  # (CELLS, 3, 16)
+        self.register_buffer("pnt_b", b.view(1, 1, 16))
         ops = ref.conv_net.ops
         convs = [op for op in ops if isinstance(op, nn.Conv2d | nn.Conv3d)]
         bns = [op for op in ops if isinstance(op, nn.BatchNorm2d | nn.BatchNorm3d)]
@@ -455,11 +454,10 @@ class DescExport(nn.Module):
 
     def forward(self, grouped: torch.Tensor) -> torch.Tensor:
         m = grouped.shape[0]
-        g = grouped.reshape(m, CELLS, SAMPLES, 3)
-        x, y, z = g[..., 0], g[..., 1], g[..., 2]
-        g = torch.stack([self.cos * x - self.sin * y, self.sin * x + self.cos * y, z], -1)
-        f = torch.relu(torch.matmul(g, self.pnt_w) + self.pnt_b).amax(2)  # (M, CELLS, 16)
-        h = f.transpose(1, 2).reshape(m, 16 * RAD_N, ELE_N, AZI_N)
+        g = grouped.reshape(m, CELLS, SAMPLES * 3).transpose(0, 1).reshape(CELLS, -1, 3)
+        f = torch.matmul(g, self.pnt_w).reshape(CELLS, m, SAMPLES, 16)  # one GEMM per cell
+        f = torch.relu(f.amax(2) + self.pnt_b)  # max before bias + ReLU (both monotone): (CELLS, M, 16)
+        h = f.permute(1, 2, 0).reshape(m, 16 * RAD_N, ELE_N, AZI_N)
         last = len(self.convs) - 1
         for i, conv in enumerate(self.convs):
             h = conv(torch.cat([h[..., -1:], h, h[..., :1]], -1))
