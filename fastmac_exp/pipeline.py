@@ -16,10 +16,12 @@ from fastmac_exp.metrics import pose_errors
 from fastmac_exp.params import (
     INLIER_THRESHOLD,
     SUCCESS_THRESHOLDS,
+    GraphParams,
     MacParams,
     check_family,
     mac_params_for,
 )
+from fastmac_exp.resolution import FIXED_RESOLUTION, resolution_for
 from fastmac_exp.samplers import NoSampler, Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -47,12 +49,17 @@ def register_correspondences(
     ratio: float = 1.0,
     family: str = "3dmatch",
     rng: np.random.Generator | None = None,
+    sample_graph: GraphParams | None = None,
 ) -> tuple[RegistrationResult, SampleResult]:
-    """Sample, then run MAC on the kept correspondences. Indices in the result refer to `corr`."""
+    """Sample, then run MAC on the kept correspondences. Indices in the result refer to `corr`.
+
+    sample_graph: the sampler's compatibility graph, when it differs from MAC's (FastMAC's graph fixes the
+    resolution at 0.006 where MAC computes it from the clouds); None = MAC's.
+    """
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()
     t0 = time.perf_counter()
-    sample = sampler.sample(corr, ratio, params.graph, family, rng)
+    sample = sampler.sample(corr, ratio, sample_graph or params.graph, family, rng)
     kept = sample.indices
     result = backend.register(corr.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
@@ -90,6 +97,7 @@ def register(
     backend_obj = make_backend(backend) if isinstance(backend, str) else backend
     graph_key = "fpfh"
     describe_ms = 0.0
+    resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
     if isinstance(source, Correspondences):
         corr = source
     else:
@@ -99,11 +107,15 @@ def register(
         from fastmac_exp.io import clean_cloud
 
         re_max, te_max = SUCCESS_THRESHOLDS[check_family(family)]
+        src = clean_cloud(np.asarray(source, dtype=np.float64), "source cloud")[0]
+        tgt = clean_cloud(np.asarray(target, dtype=np.float64), "target cloud")[0]
+        resolution = resolution_for(family, src, tgt)
         pair = Pair(
             name="register",
             family=family,
-            src_cloud=clean_cloud(np.asarray(source, dtype=np.float64), "source cloud")[0],
-            tgt_cloud=clean_cloud(np.asarray(target, dtype=np.float64), "target cloud")[0],
+            src_cloud=src,
+            tgt_cloud=tgt,
+            resolution=resolution,
             voxel_size=voxel_size or DEFAULT_VOXEL[family],
             inlier_threshold=INLIER_THRESHOLD[family],
             re_thresh_deg=re_max,
@@ -117,8 +129,11 @@ def register(
         t0 = time.perf_counter()
         corr = descriptor(pair, rng)
         describe_ms = (time.perf_counter() - t0) * 1e3
-    params = mac_params_for(family, graph_key, mac_overrides=mac_overrides)
-    result, _ = register_correspondences(corr, params, sampler_obj, backend_obj, ratio, family, rng)
+    params = mac_params_for(family, graph_key, resolution, mac_overrides=mac_overrides)
+    sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, mac_overrides=mac_overrides).graph
+    result, _ = register_correspondences(
+        corr, params, sampler_obj, backend_obj, ratio, family, rng, sample_graph=sample_graph
+    )
     result.timings["describe"] = describe_ms
     return result
 
@@ -196,14 +211,19 @@ def run_pair(
     params = mac_params_for(
         pair.family, descriptor.graph_key, pair.resolution, graph_overrides, mac_overrides
     )
+    # FastMAC's sampling graph fixes the resolution at 0.006 (spec 7.2); MAC's uses the pair's
+    sample_graph = mac_params_for(
+        pair.family, descriptor.graph_key, FIXED_RESOLUTION, graph_overrides, mac_overrides
+    ).graph
     row.update(
+        resolution=pair.resolution,
         n_in=len(corr),
         inliers_in=int(corr.labels.sum()) if corr.labels is not None else None,
         inlier_ratio_in=corr.inlier_ratio,
     )
     effective_ratio = 1.0 if isinstance(sampler, NoSampler) else ratio
     result, sample = register_correspondences(
-        corr, params, sampler, backend, effective_ratio, pair.family, rng
+        corr, params, sampler, backend, effective_ratio, pair.family, rng, sample_graph=sample_graph
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     row.update(

@@ -20,10 +20,11 @@ LOG_NAME = "results.jsonl"
 # The columns of DESIGN.md's results row, in display order; rows may carry more.
 COLUMNS = [
     "index", "dataset", "pair", "scene", "family", "descriptor", "sampler", "ratio", "backend", "seed",
-    "protocol", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept", "clique_size",
-    "clique_inliers", "re_deg", "te_cm", "success", "score", "n_edges", "n_cliques", "n_selected",
-    "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms", "t_sampling_ms",
-    "t_graph_ms", "t_cliques_ms", "t_selection_ms", "t_pose_ms", "t_total_ms", "error", "pose",
+    "protocol", "resolution", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept",
+    "clique_size", "clique_inliers", "re_deg", "te_cm", "success", "score", "n_edges", "n_cliques",
+    "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms",
+    "t_sampling_ms", "t_graph_ms", "t_cliques_ms", "t_selection_ms", "t_pose_ms", "t_total_ms", "error",
+    "pose",
 ]  # fmt: skip
 TIMING_COLUMNS = [c for c in COLUMNS if c.startswith("t_")]
 

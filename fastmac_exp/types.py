@@ -96,7 +96,7 @@ class Pair:
     inlier_threshold: float = 0.1
     re_thresh_deg: float = 15.0
     te_thresh_m: float = 0.3
-    resolution: float = 0.006
+    resolution: float = 0.006  # MAC's Gaussian kernel: alpha = 10 res (fastmac_exp.resolution)
     scene: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
 

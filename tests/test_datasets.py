@@ -26,6 +26,7 @@ from fastmac_exp.datasets.user_pairs import (
 )
 from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
 from fastmac_exp.errors import InputError
+from fastmac_exp.resolution import pair_resolution
 from fastmac_exp.transforms import random_rotation
 from fastmac_exp.types import Correspondences, Pair
 
@@ -314,8 +315,9 @@ def test_fragments_pairs_and_gt_direction(fragments):
         np.testing.assert_allclose(p.tgt_cloud, frags[i], atol=1e-12)  # target = fragment i
         np.testing.assert_allclose(apply(p.gt, p.src_cloud), p.tgt_cloud, atol=1e-9)
         assert p.correspondences is None and p.family == "3dmatch" and p.scene == scene
-        assert (p.voxel_size, p.resolution, p.re_thresh_deg, p.te_thresh_m, p.inlier_threshold) == (
-            0.05, 0.006, 15.0, 0.3, 0.1)  # fmt: skip
+        assert (p.voxel_size, p.re_thresh_deg, p.te_thresh_m, p.inlier_threshold) == (0.05, 15.0, 0.3, 0.1)
+        # the resolution is computed from the two fragments, as MAC does (spec 1.5)
+        assert p.resolution == pytest.approx(pair_resolution(frags[j], frags[i]), rel=1e-12)
         assert p.meta["source"] == f"cloud_bin_{j}" and p.meta["target"] == f"cloud_bin_{i}"
 
 
@@ -532,7 +534,7 @@ def test_precomputed_descriptor():
 @pytest.mark.parametrize(
     "config, cls, extra",
     [
-        ("3dmatch", ThreeDMatchMAC, {"descriptor": "fcgf", "scenes": None, "resolution": 0.006}),
+        ("3dmatch", ThreeDMatchMAC, {"descriptor": "fcgf", "scenes": None, "resolution": None}),
         ("3dlomatch", ThreeDLoMatchMAC, {"descriptor": "fcgf"}),
         ("kitti", KittiMAC, {"descriptor": "fcgf"}),
         ("fragments_3dmatch", Fragments3DMatch, {"family": "3dmatch", "gt_root": None}),

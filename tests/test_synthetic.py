@@ -13,6 +13,7 @@ from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.datasets.synthetic import SyntheticDataset, load_cached
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
+from fastmac_exp.resolution import pair_resolution
 
 TINY_INDOOR = {"points_per_scan": 6000}
 TINY_OUTDOOR = {"points_per_scan": 12800}
@@ -77,7 +78,11 @@ def test_gt_is_rigid_and_fields(which, request):
     assert pair.inlier_threshold == INLIER_THRESHOLD[fam]
     assert (pair.re_thresh_deg, pair.te_thresh_m) == SUCCESS_THRESHOLDS[fam]
     assert pair.voxel_size == (0.05 if fam == "3dmatch" else 0.3)
-    assert pair.resolution == 0.006
+    if fam == "3dmatch":  # computed from the clouds as MAC does (the default scans: ~0.0097 m)
+        assert pair.resolution == pytest.approx(pair_resolution(pair.src_cloud, pair.tgt_cloud))
+        assert pair.resolution > 0.006
+    else:  # KITTI: the kernel does not use it
+        assert pair.resolution == 0.006
     assert pair.scene and {"overlap", "seed", "rotation_deg"} <= set(pair.meta)
 
 

@@ -49,6 +49,7 @@ from fastmac_exp.io import (
     read_kitti_velo_to_cam,
 )
 from fastmac_exp.params import check_family
+from fastmac_exp.resolution import COMPUTED_FAMILIES, FIXED_RESOLUTION, file_resolution
 from fastmac_exp.types import Pair
 
 FRAGMENTS_WHERE = (
@@ -103,7 +104,7 @@ class Fragments3DMatch:
         scenes: Sequence[str] | None = None,
         family: str = "3dmatch",
         voxel_size: float = INDOOR_VOXEL,
-        resolution: float = 0.006,
+        resolution: float | None = None,
     ) -> None:
         self.root = root
         self.gt_root = gt_root
@@ -111,11 +112,19 @@ class Fragments3DMatch:
         self.family = family
         self.name = f"fragments_{family}"
         self.voxel_size = float(voxel_size)
-        self.resolution = float(resolution)
+        self.resolution = None if resolution is None else float(resolution)  # None: from the clouds
         self._entries: list[tuple[str, Path, Path, GtLogEntry]] | None = None
 
     def _title(self) -> str:
         return f"{self.name} (raw 3DMatch fragments + gt.log)"
+
+    def _resolution(self, files: list[Path]) -> float:
+        """As MAC: the mean of the two fragments' mesh resolutions (each computed once per file)."""
+        if self.resolution is not None:
+            return self.resolution
+        if self.family not in COMPUTED_FAMILIES:
+            return FIXED_RESOLUTION
+        return 0.5 * (file_resolution(files[0]) + file_resolution(files[1]))
 
     def _gt_log(self, root: Path, scene: str) -> Path:
         bases = [Path(self.gt_root).expanduser()] if self.gt_root is not None else []
@@ -174,9 +183,10 @@ class Fragments3DMatch:
         scene, d, log, e = entries[index]
         name = f"{scene}/cloud_bin_{e.j}+cloud_bin_{e.i}"
         gt = check_rigid(e.T, gt_log_where(log, e.i, e.j, e.n, e.line))
-        clouds = []
+        clouds, files = [], []
         for k in (e.j, e.i):
             f = d / f"cloud_bin_{k}.ply"
+            files.append(f)
             if not f.is_file():
                 raise InputError(
                     f"pair {name!r}: fragment missing: {f} (expected cloud_bin_{k}.ply in {d}, named by "
@@ -190,7 +200,7 @@ class Fragments3DMatch:
             src_cloud=clouds[0],
             tgt_cloud=clouds[1],
             voxel_size=self.voxel_size,
-            resolution=self.resolution,
+            resolution=self._resolution(files),
             scene=scene,
             meta={"source": f"cloud_bin_{e.j}", "target": f"cloud_bin_{e.i}", "gt_log": str(log)},
             **_thresholds(self.family),

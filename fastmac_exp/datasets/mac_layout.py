@@ -28,6 +28,7 @@ from pathlib import Path
 from fastmac_exp.errors import InputError
 from fastmac_exp.io import read_correspondence_array, read_labels, read_matrix
 from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
+from fastmac_exp.resolution import FIXED_RESOLUTION, file_resolution
 from fastmac_exp.types import Correspondences, Pair
 
 SCENES_3DMATCH = (
@@ -141,8 +142,10 @@ class ThreeDMatchMAC:
     """3DMatch pairs in MAC's released layout; pair names are `<scene>/<A>+<B>` in dataload order.
 
     `scenes=None` takes the 8 benchmark scenes in the spec's order. `resolution` is the mesh resolution of
-    the graph's Gaussian kernel (alpha = 10 res); FastMAC hard-codes 0.006 for 3DMatch and 3DLoMatch. The
-    same class reads ETH (same layout, 3DMatch rules) with `scenes=[gazebo_summer, ...]`.
+    the graph's Gaussian kernel (alpha = 10 res): None (the default) computes it as MAC does, from the
+    scene's `<A>.ply` and `<B>.ply` (spec 1.2, 1.5), and falls back to 0.006 (FastMAC's fixed value) when
+    they are absent, saying so in the pair's meta; a number fixes it. The same class reads ETH (same
+    layout, 3DMatch rules) with `scenes=[gazebo_summer, ...]`.
     """
 
     name = "3dmatch"
@@ -155,15 +158,24 @@ class ThreeDMatchMAC:
         root: str | Path | None = None,
         descriptor: str = "fpfh",
         scenes: list[str] | tuple[str, ...] | None = None,
-        resolution: float = 0.006,
+        resolution: float | None = None,
     ) -> None:
         # Nothing is read or checked against the disk here: Hydra wraps constructor errors in its own
         # exception type, so data problems surface as InputError from names()/load()/len().
         self.root = root
         self.descriptor = descriptor
         self.scenes = list(scenes) if scenes is not None else list(self.default_scenes)
-        self.resolution = float(resolution)
+        self.resolution = None if resolution is None else float(resolution)
         self._entries: list[tuple[str, str, Path]] | None = None
+
+    def _resolution(self, scene_dir: Path, src: str, tgt: str) -> tuple[float, str]:
+        """(resolution, where it came from): the fixed value, the two clouds, or FastMAC's 0.006."""
+        if self.resolution is not None:
+            return self.resolution, "fixed"
+        plys = [scene_dir / f"{src}.ply", scene_dir / f"{tgt}.ply"]
+        if all(p.is_file() for p in plys):
+            return 0.5 * (file_resolution(plys[0]) + file_resolution(plys[1])), "clouds"
+        return FIXED_RESOLUTION, "0.006 (no .ply clouds in the scene folder)"
 
     # -- index -----------------------------------------------------------------------------------------
     def _title(self) -> str:
@@ -241,6 +253,7 @@ class ThreeDMatchMAC:
         scene, pname, d = entries[index]
         _, corr, lab, gt = _file_names(self.descriptor)
         src, tgt = pname.split("+", 1)
+        resolution, res_from = self._resolution(d, src, tgt)
         return _PairFiles.read(
             f"{scene}/{pname}" if scene else pname,
             d / f"{pname}{corr}",
@@ -249,9 +262,9 @@ class ThreeDMatchMAC:
             self._layout(),
             self.family,
             voxel_size=INDOOR_VOXEL,
-            resolution=self.resolution,
+            resolution=resolution,
             scene=scene,
-            meta={"source": src, "target": tgt, "descriptor": self.descriptor},
+            meta={"source": src, "target": tgt, "descriptor": self.descriptor, "resolution_from": res_from},
             **_thresholds(self.family),
         )
 

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
+from fastmac_exp.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 log = logging.getLogger(__name__)
@@ -421,7 +422,7 @@ class SyntheticDataset:
             inlier_threshold=INLIER_THRESHOLD[family],
             re_thresh_deg=re_deg,
             te_thresh_m=te_m,
-            resolution=0.006,
+            resolution=resolution_for(family, data["src"], data["tgt"]),
             scene=f"synthetic-{cfg.kind}-s{self.seed}-{k:03d}",
             meta=meta,
         )

@@ -18,6 +18,7 @@ from fastmac_exp.datasets.mac_layout import INDOOR_VOXEL, KITTI_VOXEL, _threshol
 from fastmac_exp.errors import InputError
 from fastmac_exp.io import clean_cloud, read_matrix, read_points
 from fastmac_exp.params import check_family
+from fastmac_exp.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package
@@ -77,7 +78,7 @@ class UserPairs:
         gt: str | Path | Sequence[str | Path | None] | None = None,
         family: str = "3dmatch",
         voxel_size: float | None = None,
-        resolution: float = 0.006,
+        resolution: float | None = None,
         drop_zeros: bool = True,
     ) -> None:
         self.source = source
@@ -85,7 +86,7 @@ class UserPairs:
         self.gt = gt
         self.family = family
         self.voxel_size = voxel_size
-        self.resolution = float(resolution)
+        self.resolution = None if resolution is None else float(resolution)
         self.drop_zeros = bool(drop_zeros)
         self._entries: list[tuple[str, Path, Path, Path | None]] | None = None
 
@@ -142,7 +143,9 @@ class UserPairs:
             src_cloud=src,
             tgt_cloud=tgt,
             voxel_size=float(voxel),
-            resolution=self.resolution,
+            resolution=(
+                resolution_for(self.family, src, tgt) if self.resolution is None else self.resolution
+            ),
             meta={
                 "source_file": str(s),
                 "target_file": str(t),
@@ -244,7 +247,7 @@ class SharedRealPairs:
             voxel = INDOOR_VOXEL
         else:
             raise InputError(f"pair {entry['id']!r}: unknown category {cat!r}; expected one of {CATEGORIES}")
-        return {"family": family, "voxel_size": voxel, "resolution": 0.006, **_thresholds(family)}
+        return {"family": family, "voxel_size": voxel, **_thresholds(family)}
 
     def load(self, index: int) -> Pair:
         entries = self._index()
@@ -255,6 +258,9 @@ class SharedRealPairs:
         src, ds = _load(root / e["source"], "source cloud", True)
         tgt, dt = _load(root / e["target"], "target cloud", True)
         gt = read_matrix(root / e["gt"])
+        rules = self.rules(e)
+        if "resolution" not in rules:  # computed from the clouds where MAC computes it (indoor families)
+            rules["resolution"] = resolution_for(rules["family"], src, tgt)
         return Pair(
             name=e["id"],
             gt=gt,
@@ -271,5 +277,5 @@ class SharedRealPairs:
                 "gt_file": str(root / e["gt"]),
                 "dropped_points": (ds, dt),
             },
-            **self.rules(e),
+            **rules,
         )
