@@ -94,7 +94,12 @@ SIGNAL_NAMES = {
     "xyz111": "111 degree+xyz",
     "xyz000": "000 random",
 }
-FILTER_NAMES = {"highpass": "high-pass", "allpass": "all-pass", "lowpass": "low-pass"}
+FILTER_NAMES = {
+    "highpass": "high-pass",
+    "allpass": "all-pass",
+    "lowpass": "low-pass",
+    "highpass_squared": "high-pass |f|²",  # the paper's main text; the code (and our default) uses |f|
+}
 SHORT = {
     "3dmatch": "synthetic 3DMatch-like",
     "3dlomatch": "synthetic 3DLoMatch-like",
@@ -427,7 +432,7 @@ class Results:
             header += [f"{n} RE (°) / TE (cm)" for n in FILTER_NAMES.values()]
             rows = [[f"{r:g}"] + [rr_cell(row_of(a, f, r)) for f in FILTER_NAMES]
                     + [re_te(row_of(a, f, r)) for f in FILTER_NAMES] for r in ratios]  # fmt: skip
-            self.add(markdown_table(header, rows, ["l"] + ["r"] * 6), "")
+            self.add(markdown_table(header, rows, ["l"] + ["r"] * (2 * len(FILTER_NAMES))), "")
             res = []
             for r in ratios:
                 hp, lo, al = (row_of(a, f, r) for f in ("highpass", "lowpass", "allpass"))

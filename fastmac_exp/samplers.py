@@ -173,7 +173,7 @@ class GraphFilterSampler(Sampler):
         if normalize not in ("auto", "minmax", "none"):
             raise InputError(f"sampler.normalize must be auto, minmax or none, got {normalize!r}")
         self.filter = filter
-        self.name = filter
+        self.name = filter + ("_squared" if squared else "")
         self.normalize = normalize
         self.squared = squared
         self.self_loops = self_loops
