@@ -26,7 +26,7 @@ def fpfh_features(
     feature_max_nn: int = 100,
     normalize: bool = True,
     what: str = "cloud",
-    orient_normals: str = "open3d",
+    orient_normals: str = "origin",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-downsample `points` and compute FPFH features.
 
@@ -34,10 +34,16 @@ def fpfh_features(
     when `normalize` (an all-zero histogram stays zero). Raises InputError when fewer than 10 points
     survive the downsampling.
 
-    `orient_normals` fixes the normals' signs, which FPFH depends on: "open3d" keeps Open3D's default
-    (each normal flipped towards +z of the cloud's frame, as MAC's Python example), "origin" flips them
-    towards the frame's origin (PCL's default viewpoint, as MAC's C++ demo; rotation-invariant for
-    scans in their sensor frame).
+    `orient_normals` fixes the normals' signs, which FPFH depends on (default "origin", see below):
+    "open3d" keeps Open3D's default (each normal flipped towards +z of the cloud's frame, as MAC's
+    Python example), "origin" flips them towards the frame's origin (PCL's default viewpoint, as MAC's
+    C++ demo; rotation-invariant for scans in their sensor frame).
+
+    Why "origin" is the default: on the 13 real pairs of ../shared/data (FPFH, 5,000 correspondences) it
+    gives a higher inlier ratio on all 12 pairs that have inliers (3DMatch/3DLoMatch x1.1-1.4, the
+    95-degree indoor pair 1.4 % -> 3.0 %, KITTI x1.1-1.3, the dragon x1.9), because Open3D's +z rule is not
+    rotation invariant. "open3d" reproduces MAC's Python example (spec 1.7); MAC's C++ demo orients towards
+    the viewpoint like "origin".
     """
     from fastmac_exp._open3d import o3d
 
@@ -109,7 +115,7 @@ class FPFHDescriptor:
         feature_max_nn: int = 100,
         mutual: bool = False,
         max_correspondences: int = 5000,
-        orient_normals: str = "open3d",
+        orient_normals: str = "origin",
     ) -> None:
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"fpfh voxel_size must be positive or None (use the pair's), got {voxel_size}")
