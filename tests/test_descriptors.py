@@ -136,8 +136,3 @@ def test_oracle_errors(pair):
         OracleDescriptor()(no_gt, rng)
     with pytest.raises(InputError, match="point clouds"):
         OracleDescriptor()(Pair(name="noclouds", gt=np.eye(4)), rng)
-
-
-def test_descriptor_names():
-    assert (FPFHDescriptor.name, FPFHDescriptor.graph_key) == ("fpfh", "fpfh")
-    assert (OracleDescriptor.name, OracleDescriptor.graph_key) == ("oracle", "fpfh")
