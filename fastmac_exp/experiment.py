@@ -69,8 +69,8 @@ class Components:
     def names(self) -> list[str]:
         names = list(self.dataset.names())
         if self.limit is not None:
-            if int(self.limit) < 0:
-                raise InputError(f"dataset.limit must be >= 0, got {self.limit}")
+            if int(self.limit) < 1:
+                raise InputError(f"dataset.limit must be >= 1 (null = every pair), got {self.limit}")
             names = names[: int(self.limit)]
         return names
 
@@ -229,6 +229,7 @@ def run_experiment(
         bar.close()
         table = results.write_tables()
         summary = summarize(table)
+        summary["failures"] = failure_reasons(table)
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
@@ -284,6 +285,20 @@ def _make_trackers(cfg: DictConfig) -> list:
     return trackers
 
 
+def failure_reasons(table: pd.DataFrame) -> dict[str, dict[str, Any]]:
+    """The failed pairs grouped by their error message: {message: {count, pairs}}, most frequent first."""
+    if "error" not in table or not len(table):
+        return {}
+    errors = table["error"].fillna("").astype(str)
+    groups: dict[str, list[str]] = {}
+    for pair, err in zip(table["pair"].astype(str), errors):
+        if err:
+            groups.setdefault(err.splitlines()[0][:300], []).append(pair)
+    return {
+        msg: {"count": len(p), "pairs": p} for msg, p in sorted(groups.items(), key=lambda kv: -len(kv[1]))
+    }
+
+
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary table."""
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
@@ -298,4 +313,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
         "median ms: " + "  ".join(f"{st} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
+    for reason, info in (s.get("failures") or {}).items():
+        pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
+        lines.append(f"failed x{info['count']}: {reason} ({pairs})")
     return "\n".join(lines)
