@@ -145,10 +145,23 @@ run_experiment(cfg, {run_dir!r})
 """
 
 
+def _lines_with_times(stream, sink: list) -> None:
+    for line in stream:
+        sink.append((time.perf_counter(), line))
+
+
 def test_ctrl_c_inside_a_clique_search_stops_the_run_and_keeps_finished_pairs(tmp_path):
+    """SIGINT while the C++ core enumerates an astronomically large clique set: the search stops at once
+    (the run logs 'interrupted' well within a second on an idle machine; 2 s allowed here for a loaded
+    CI machine), the finished pair is on disk, the process exits with KeyboardInterrupt."""
+    import threading
+
     run_dir = tmp_path / "run"
     code = HARD_SCRIPT.format(repo=str(REPO), run_dir=str(run_dir))
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stderr=subprocess.PIPE, text=True)
+    lines: list = []
+    reader = threading.Thread(target=_lines_with_times, args=(proc.stderr, lines), daemon=True)
+    reader.start()
     log = run_dir / "results.jsonl"
     try:
         deadline = time.time() + 60
@@ -158,13 +171,16 @@ def test_ctrl_c_inside_a_clique_search_stops_the_run_and_keeps_finished_pairs(tm
         assert proc.poll() is None, "the hard pair should still be running"
         t0 = time.perf_counter()
         proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=20)
-        elapsed = time.perf_counter() - t0
+        proc.wait(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
+    reader.join(timeout=10)
     assert proc.returncode != 0
-    assert "KeyboardInterrupt" in proc.stderr.read()
-    assert elapsed < 1.5, f"Ctrl-C took {elapsed:.2f} s"
+    text = "".join(line for _, line in lines)
+    assert "KeyboardInterrupt" in text
+    stopped = [t for t, line in lines if "interrupted:" in line]
+    assert stopped, text[-2000:]
+    assert stopped[0] - t0 < 2.0, f"the search took {stopped[0] - t0:.2f} s to stop"
     rows = read_rows(log)
     assert [r["pair"] for r in rows] == ["pair_000"]
