@@ -3,7 +3,8 @@
 Indoor pairs ("3dmatch" rules; "3dlomatch" for 10-30 % overlap) imitate 3DMatch fragments: each
 fragment fuses 3 nearby frames of a pinhole depth camera (65 deg FOV, 0.3-3.5 m, Kinect-like axial
 noise) in a furnished 3-6 m room; the two fragments' base cameras are 0.3-1 m and 10-60 deg apart and
-poses are resampled until the overlap is in range (>= 30 % for 3dmatch). Outdoor pairs ("kitti"
+poses are resampled until the overlap is in range (15-40 % for 3dmatch, 10-20 % for 3dlomatch, as
+calibrated below). Outdoor pairs ("kitti"
 rules) imitate KITTI: a 64-beam spinning LiDAR (+2..-24.8 deg, 0.2 deg azimuth step, 80 m, 2 cm
 range noise, 5 % dropout) 1.73 m above a street with facades, gardens, parked cars, poles, trees and
 crossings; the source scan is 0.3-1.5 m ahead of the target (consecutive KITTI frames at 10 Hz).
@@ -13,12 +14,13 @@ rotation of the source about its sensor (0-180 deg) is folded into the GT.
 Pairs are seeded by (seed, family, index) and cached as .npz under `cache_dir`, keyed by a hash of
 every generation parameter; a corrupt cache file is rebuilt with a warning.
 
-Difficulty was calibrated with benchmarks/calibrate_synthetic.py (FPFH at voxel 0.05 / 0.3, inlier
-error < 0.1 / 0.6 m): synthetic 3dmatch 1.9-11.9 % inliers (median 4.6 %) against 3.3-7.8 % for the
-real 3DMatch/3DLoMatch pairs; synthetic kitti 9.5-21 % (median 17 %) against 18-26 % for the real
-consecutive KITTI / small_gicp pairs. Note that Open3D's FPFH orients normals towards +z, so it is
-not rotation-invariant: without the extra rotation (`extra_rotation_deg=0`) the indoor median rises
-to 8 %; `FPFHDescriptor(orient_normals="origin")` removes that dependence.
+Difficulty is calibrated on MAC's registration recall, the quantity the studies compare: with FPFH
+(normals towards the sensor, the default) and the defaults above, MAC registers 21/24 synthetic
+3dmatch pairs (87.5 %, paper 84 %), 10/24 3dlomatch pairs (41.7 %, paper 41 %) and 24/24 kitti pairs
+(100 %, paper 98 %). The knobs are the sensor noise (x3 indoors, x4 for 3dlomatch) and the overlap range;
+the table of the settings tried is docs/synthetic_calibration.md. The price: the indoor families now
+have fewer FPFH inliers (median 2.9 % / 0.9 %) than the four real indoor pairs of ../shared/data
+(3.0-9.1 %), which MAC registers all; the overlap is measured differently from 3DMatch's ">= 30 %".
 """
 
 from __future__ import annotations
@@ -56,7 +58,10 @@ DEFAULT_CLOUD_VOXEL = {"indoor": 0.01, "outdoor": 0.1}  # density of the stored 
 DEFAULT_POINTS = {"indoor": 120_000, "outdoor": 115_200}
 # overlap = fraction of source points with a target point within `radius` under GT, both clouds at `voxel`
 OVERLAP_MEASURE = {"indoor": (0.025, 0.0375), "outdoor": (0.3, 0.3)}
-DEFAULT_OVERLAP = {"3dmatch": (0.3, 1.0), "3dlomatch": (0.1, 0.3), "kitti": (0.0, 1.0)}
+# Calibrated so that MAC's recall sits near the paper's (docs/synthetic_calibration.md): noise and overlap
+# per family; the other parameters are the first landing's.
+DEFAULT_OVERLAP = {"3dmatch": (0.15, 0.4), "3dlomatch": (0.1, 0.2), "kitti": (0.0, 1.0)}
+DEFAULT_NOISE = {"3dmatch": 3.0, "3dlomatch": 4.0, "kitti": 1.0}  # multiplies the sensor noise model
 MAX_ATTEMPTS = 12
 
 
@@ -96,6 +101,7 @@ def default_config(family: str, **overrides: Any) -> GenConfig:
         "cloud_voxel": DEFAULT_CLOUD_VOXEL[kind],
         "overlap_min": lo,
         "overlap_max": hi,
+        "noise_scale": DEFAULT_NOISE[family],
     }
     if kind == "indoor":
         base.update(frames_per_fragment=3, extra_rotation_deg=180.0, move_min=0.3, move_max=1.0)
@@ -318,7 +324,7 @@ class SyntheticDataset:
         cache_dir: str | os.PathLike | None = ".cache/synthetic",
         points_per_scan: int | None = None,
         frames_per_fragment: int | None = None,
-        noise_scale: float = 1.0,
+        noise_scale: float | None = None,
         extra_rotation_deg: float | None = None,
         voxel_size: float | None = None,
         cloud_voxel: float | None = None,
@@ -338,7 +344,7 @@ class SyntheticDataset:
             raise InputError(f"points_per_scan must be at least 1000, got {points_per_scan}")
         if frames_per_fragment is not None and int(frames_per_fragment) < 1:
             raise InputError(f"frames_per_fragment must be at least 1, got {frames_per_fragment}")
-        if noise_scale < 0 or clutter < 0:
+        if (noise_scale is not None and noise_scale < 0) or clutter < 0:
             raise InputError("noise_scale and clutter must be >= 0")
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"voxel_size must be positive, got {voxel_size}")
@@ -347,7 +353,7 @@ class SyntheticDataset:
         overrides: dict[str, Any] = {
             "points_per_scan": None if points_per_scan is None else int(points_per_scan),
             "frames_per_fragment": None if frames_per_fragment is None else int(frames_per_fragment),
-            "noise_scale": float(noise_scale),
+            "noise_scale": None if noise_scale is None else float(noise_scale),
             "extra_rotation_deg": None if extra_rotation_deg is None else float(extra_rotation_deg),
             "cloud_voxel": None if cloud_voxel is None else float(cloud_voxel),
             "clutter": float(clutter),
