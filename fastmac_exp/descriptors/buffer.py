@@ -462,9 +462,10 @@ class BufferModel:
 class BufferDescriptor:
     """BUFFER's published descriptor (Ref axis + cylindrical patch network) through onnxruntime.
 
-    `model`: "auto" (the pair's family picks the shipped 3DMatch or KITTI model: 3dmatch/3dlomatch ->
-    3DMatch, kitti -> KITTI), "3dmatch", "kitti", or the path of a Desc model meeting the contract (its
-    Ref model from its metadata unless `ref_model` is given). Keypoints: the cloud voxel-downsampled at
+    `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti),
+    "3dmatch", "kitti", or the path of a Desc model meeting the contract; `model_3dmatch` / `model_kitti`:
+    the Desc files (default: the shipped ones); `ref_model`: the Ref file for Desc models that align by it
+    (None: the one named in the Desc model's metadata, next to it). Keypoints: the cloud voxel-downsampled at
     `voxel_size` (None: the pair's), as FPFH. `scale`: BUFFER's lengths are multiplied by it (None: the
     pair's voxel size / the model's reference voxel). Matching, cap and labels as the other front ends
     (`max_correspondences` random subset, one-way nearest neighbour unless `mutual`).
@@ -481,6 +482,8 @@ class BufferDescriptor:
     def __init__(
         self,
         model: str = "auto",
+        model_3dmatch: str = SHIPPED["3dmatch"],
+        model_kitti: str = SHIPPED["kitti"],
         ref_model: str | None = None,
         voxel_size: float | None = None,
         scale: float | None = None,
@@ -501,6 +504,8 @@ class BufferDescriptor:
         if threads < 0 or batch_size < 1:
             raise InputError(f"threads must be >= 0 and batch_size >= 1, got {threads}, {batch_size}")
         self.model = str(model)
+        self.model_3dmatch = str(model_3dmatch)
+        self.model_kitti = str(model_kitti)
         self.ref_model = ref_model
         self.voxel_size = voxel_size
         self.scale = scale
@@ -515,6 +520,7 @@ class BufferDescriptor:
         self.axis = axis
         self._models: dict[str, BufferModel] = {}
         self.last_timings: dict[str, float] = {}
+        self.timings_log: list[dict] = []  # one entry a described cloud (the last 1000)
         if self.model != "auto":
             self.load(self.model)
 
@@ -528,7 +534,9 @@ class BufferDescriptor:
 
     def model_path(self, which: str) -> Path:
         """The Desc model file for "3dmatch", "kitti" or a path."""
-        return resolve_model_path(SHIPPED.get(which, which))
+        return resolve_model_path(
+            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
+        )
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
@@ -634,7 +642,9 @@ class BufferDescriptor:
             "network_s": t_run,
             "total_s": time.perf_counter() - t0,
             "keypoints": m,
+            "what": what,
         }
+        self.timings_log = [*self.timings_log[-999:], self.last_timings]
         return out
 
     def features(
