@@ -117,6 +117,50 @@ def test_pair_screens_agree(monkeypatch, extent):
         assert res[screen]["score"] == res["generic"]["score"]
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
+    """Graphs with a dense core (outdoor-like: a large consistent group) take the matrix-product path
+    (masked_square.cpp); every kernel and the all-sparse path give W * (W W) and the signals of dense numpy."""
+    src, tgt, _, _ = clustered(900, 0.35, 0.004, seed)
+    gp = ("quadratic", 0.06, 0.1, 0.8)
+    w = dense_w(src, tgt, *gp)
+    g = w * (w @ w)
+    i, j = np.nonzero(np.triu(w, 1))
+    s, f, _ = dense_signals(w, True)
+    cores = {}
+    for mode, env in [("sparse", {"FASTMAC_DENSE_CORE": "off"}), ("generic", {"FASTMAC_GEMM": "generic"}),
+                      ("avx2", {"FASTMAC_GEMM": "avx2"}), ("avx512", {"FASTMAC_GEMM": "avx512"})]:  # fmt: skip
+        monkeypatch.delenv("FASTMAC_DENSE_CORE", raising=False)
+        monkeypatch.delenv("FASTMAC_GEMM", raising=False)
+        for k, v in env.items():
+            monkeypatch.setenv(k, v)  # a kernel the CPU lacks falls back to one it has
+        for threads in (1, 2):
+            e = core.graph_edges(src, tgt, *gp, num_threads=threads)
+            np.testing.assert_array_equal(e["i"], i)
+            np.testing.assert_array_equal(e["j"], j)
+            np.testing.assert_allclose(e["g"], g[i, j], rtol=1e-12, atol=1e-12)
+            sig = core.graph_signals(src, tgt, *gp, num_threads=threads)
+            np.testing.assert_allclose(sig["degree"], s, rtol=1e-12)
+            np.testing.assert_allclose(sig["highpass"], f, rtol=1e-9, atol=1e-9 * np.abs(s).max() ** 2)
+            cores[mode] = (e["dense_core"], sig["dense_core"])
+    assert cores["sparse"] == (0, 0)
+    n_in = int(round(900 * 0.35))
+    for mode in ("generic", "avx2", "avx512"):  # the product path fired, on about the inlier group
+        assert 0.8 * n_in <= cores[mode][0] == cores[mode][1] <= 1.3 * n_in, cores
+
+
+def test_dense_core_is_used_by_mac_with_the_same_result(monkeypatch):
+    src, tgt, r, t = clustered(700, 0.4, 0.004, 3)
+    out = {}
+    for mode in ("off", "on"):
+        monkeypatch.setenv("FASTMAC_DENSE_CORE", mode)
+        out[mode] = core.mac(src, tgt, "quadratic", 0.06, 0.1, 0.8, 0.1, return_selected=True)
+    assert core.graph_edges(src, tgt, "quadratic", 0.06, 0.1, 0.8)["dense_core"] >= 200
+    assert [list(c) for c in out["on"]["selected"]] == [list(c) for c in out["off"]["selected"]]
+    np.testing.assert_allclose(out["on"]["pose"], out["off"]["pose"], atol=1e-9)
+    assert rotation_error_deg(out["on"]["pose"][:3, :3], r) < 2.0
+
+
 @pytest.mark.parametrize("self_loops", [True, False])
 @pytest.mark.parametrize("kernel,thr", [("gaussian", 0.9), ("quadratic", 0.8)])
 def test_graph_signals_equal_dense_formula(self_loops, kernel, thr):

@@ -94,10 +94,11 @@ nb::dict graph_edges(const Points &src, const Points &tgt, const std::string &ke
     const auto gp = graph_params(kernel, alpha, tau, threshold);
     std::vector<int64_t> ei, ej;
     std::vector<double> ew, eg;
+    int64_t dense_core = 0;
     {
         nb::gil_scoped_release nogil;
         fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
-        std::vector<double> G = fastmac::second_order(W, num_threads);
+        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core);
         const int64_t m = W.n_edges();
         ei.reserve(m);
         ej.reserve(m);
@@ -116,6 +117,7 @@ nb::dict graph_edges(const Points &src, const Points &tgt, const std::string &ke
     d["j"] = to_numpy(std::move(ej));
     d["w"] = to_numpy(std::move(ew));
     d["g"] = to_numpy(std::move(eg));
+    d["dense_core"] = dense_core;
     return d;
 }
 
@@ -127,14 +129,17 @@ nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &
     {
         nb::gil_scoped_release nogil;
         fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
-        std::vector<double> G = fastmac::second_order(W, num_threads);
+        int64_t dense_core = 0;
+        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core);
         s = fastmac::graph_signals(W, G, self_loops, num_threads);
+        s.dense_core = dense_core;
     }
     nb::dict d;
     d["degree"] = to_numpy(std::move(s.degree));
     d["highpass"] = to_numpy(std::move(s.highpass));
     d["lowpass"] = to_numpy(std::move(s.lowpass));
     d["n_edges"] = s.n_edges;
+    d["dense_core"] = s.dense_core;
     return d;
 }
 

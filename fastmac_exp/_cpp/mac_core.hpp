@@ -54,11 +54,12 @@ struct Csr {
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads);
 
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
-std::vector<double> second_order(const Csr &W, int nthreads);
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr);
 
 // S_ij = V_ij * sum_k V_ik V_kj for every stored entry of the pattern V (values vals, aligned with
 // V.col; zero values are allowed and give 0). Dense dot products inside the dense core (masked_square.cpp).
-std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads);
+std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
+                                  int64_t *core_size = nullptr);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
@@ -66,6 +67,7 @@ double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int3
 struct Signals {
     std::vector<double> degree, highpass, lowpass;
     int64_t n_edges = 0;
+    int64_t dense_core = 0;  // nodes of the dense core of the second-order product (0: all sparse)
 };
 
 // Sampler signals (spec 7.2-7.3) on the SOG with (FastMAC) or without (MAC) self-loops.

@@ -1,26 +1,271 @@
 // S_ij = V_ij * sum_k V_ik V_kj on the stored entries of a symmetric sparse matrix V: the second-order
-// graph G = W * (W W) (spec 2.3) and the clustering coefficients' triangle sums (V = G^(1/3), spec 2.4).
+// graph G = W * (W W) (spec 2.3), the sampler's degree signal (spec 7.2) and the clustering coefficients'
+// triangle sums (V = G^(1/3), spec 2.4).
 //
-// Row i of V is scattered into a dense array d, then every upper entry (i, j) takes sum_k d[k] V_jk
-// over row j: one gather per (edge, neighbour of j). Measured alternatives that lost on the real KITTI
-// graphs (5,000 nodes, 394k edges, a dense core of ~1,000 nodes): dense float64 rows over the core with
-// SIMD dot products per edge (memory-bound: 1.0-2.5x slower), and bit rows over the core with
-// popcount-ranked values per common neighbour (1.5-2.5x slower); see benchmarks/bench_core.py.
+// Outdoor graphs have a dense core (the inliers, nearly all compatible with each other: on the real KITTI
+// pairs ~1,250 of 5,000 nodes with half of all core pairs linked) and a sparse rest. A gather per (edge,
+// common-neighbour candidate) costs ~m^3/2 random loads on a core of m nodes; the same sums as a dense
+// matrix product run at the FMA units' speed. So:
+//
+// 1. The core C: the largest m such that the m-th highest degree is >= m / 4 (kept when m >= 128 and a
+//    fifth of the core pairs are edges). K: every node with >= m / 4 neighbours in C.
+// 2. P = D^T D over the core pairs, D = V[K, C] dense (rows k in K): sum_{k in K} V_ka V_kb, computed by a
+//    register-blocked kernel (AVX-512 or AVX2 FMA, else portable code) on the upper tiles only.
+// 3. The other k (few neighbours in C) add V_ka V_kb to P for each pair of their core neighbours.
+//    Now P_ab = sum over all k of V_ka V_kb, and S_ab = V_ab P_ab on the core edges.
+// 4. Every other edge by sparse gathers: the endpoint with the longer row is scattered densely and the
+//    sum runs over the shorter row (cost: the smaller degree per edge).
+//
+// The sums are the same as the gather kernel's up to the order of the additions (and FMA rounding): a
+// relative difference of ~1e-15. FASTMAC_DENSE_CORE=off forces the all-sparse path, FASTMAC_GEMM=avx512 |
+// avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has).
 #include <algorithm>
+#include <cstdlib>
+#include <cstring>
+#include <numeric>
+#include <string>
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define FASTMAC_X86_GEMM 1
+#endif
 
 #include "mac_core.hpp"
 #include "parallel.hpp"
 
 namespace fastmac {
 
-std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads) {
-    // The work is ~ sum over edges of deg(j): serial only for small graphs.
-    nthreads = resolve_threads(nthreads, std::max<int64_t>(V.n, V.nnz() / 16));
+namespace {
+
+constexpr int64_t kMR = 8;   // rows of a P tile
+constexpr int64_t kNR = 16;  // columns of a P tile (the leading dimension is a multiple of this)
+constexpr int64_t kKC = 64;  // rows of D per pass over a panel (the panel stays in L2)
+constexpr int64_t kSuper = 64;  // P rows one thread takes at a time (B tiles reused from L1)
+
+// acc[MR x NR] += sum_{r < kc} a[r * ld + (0..MR)] (x) b[r * ld + (0..NR)], then added into c (ld).
+using TileFn = void (*)(const double *a, const double *b, int64_t kc, int64_t ld, double *c);
+
+void tile_generic(const double *a, const double *b, int64_t kc, int64_t ld, double *c) {
+    double acc[kMR][kNR] = {};
+    for (int64_t r = 0; r < kc; ++r) {
+        const double *ar = a + r * ld, *br = b + r * ld;
+        for (int64_t t = 0; t < kMR; ++t) {
+            const double x = ar[t];
+            if (x == 0.0) continue;
+            for (int64_t u = 0; u < kNR; ++u) acc[t][u] += x * br[u];
+        }
+    }
+    for (int64_t t = 0; t < kMR; ++t)
+        for (int64_t u = 0; u < kNR; ++u) c[t * ld + u] += acc[t][u];
+}
+
+#ifdef FASTMAC_X86_GEMM
+__attribute__((target("avx512f"))) void tile_avx512(const double *a, const double *b, int64_t kc, int64_t ld,
+                                                    double *c) {
+    __m512d c00 = _mm512_setzero_pd(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00,
+            c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00, c60 = c00, c61 = c00, c70 = c00, c71 = c00;
+    for (int64_t r = 0; r < kc; ++r) {
+        const double *ar = a + r * ld, *br = b + r * ld;
+        const __m512d b0 = _mm512_loadu_pd(br), b1 = _mm512_loadu_pd(br + 8);
+        __m512d x;
+        x = _mm512_set1_pd(ar[0]), c00 = _mm512_fmadd_pd(x, b0, c00), c01 = _mm512_fmadd_pd(x, b1, c01);
+        x = _mm512_set1_pd(ar[1]), c10 = _mm512_fmadd_pd(x, b0, c10), c11 = _mm512_fmadd_pd(x, b1, c11);
+        x = _mm512_set1_pd(ar[2]), c20 = _mm512_fmadd_pd(x, b0, c20), c21 = _mm512_fmadd_pd(x, b1, c21);
+        x = _mm512_set1_pd(ar[3]), c30 = _mm512_fmadd_pd(x, b0, c30), c31 = _mm512_fmadd_pd(x, b1, c31);
+        x = _mm512_set1_pd(ar[4]), c40 = _mm512_fmadd_pd(x, b0, c40), c41 = _mm512_fmadd_pd(x, b1, c41);
+        x = _mm512_set1_pd(ar[5]), c50 = _mm512_fmadd_pd(x, b0, c50), c51 = _mm512_fmadd_pd(x, b1, c51);
+        x = _mm512_set1_pd(ar[6]), c60 = _mm512_fmadd_pd(x, b0, c60), c61 = _mm512_fmadd_pd(x, b1, c61);
+        x = _mm512_set1_pd(ar[7]), c70 = _mm512_fmadd_pd(x, b0, c70), c71 = _mm512_fmadd_pd(x, b1, c71);
+    }
+    const __m512d acc[kMR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31},
+                                 {c40, c41}, {c50, c51}, {c60, c61}, {c70, c71}};
+    for (int64_t t = 0; t < kMR; ++t) {
+        double *ct = c + t * ld;
+        _mm512_storeu_pd(ct, _mm512_add_pd(_mm512_loadu_pd(ct), acc[t][0]));
+        _mm512_storeu_pd(ct + 8, _mm512_add_pd(_mm512_loadu_pd(ct + 8), acc[t][1]));
+    }
+}
+
+// Two half-width passes (columns 0-7, then 8-15) of 8 x 8 tiles: 16 ymm accumulators.
+__attribute__((target("avx2,fma"))) void tile_avx2_half(const double *a, const double *b, int64_t kc, int64_t ld,
+                                                        double *c) {
+    __m256d c00 = _mm256_setzero_pd(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00,
+            c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00, c60 = c00, c61 = c00, c70 = c00, c71 = c00;
+    for (int64_t r = 0; r < kc; ++r) {
+        const double *ar = a + r * ld, *br = b + r * ld;
+        const __m256d b0 = _mm256_loadu_pd(br), b1 = _mm256_loadu_pd(br + 4);
+        __m256d x;
+        x = _mm256_broadcast_sd(ar + 0), c00 = _mm256_fmadd_pd(x, b0, c00), c01 = _mm256_fmadd_pd(x, b1, c01);
+        x = _mm256_broadcast_sd(ar + 1), c10 = _mm256_fmadd_pd(x, b0, c10), c11 = _mm256_fmadd_pd(x, b1, c11);
+        x = _mm256_broadcast_sd(ar + 2), c20 = _mm256_fmadd_pd(x, b0, c20), c21 = _mm256_fmadd_pd(x, b1, c21);
+        x = _mm256_broadcast_sd(ar + 3), c30 = _mm256_fmadd_pd(x, b0, c30), c31 = _mm256_fmadd_pd(x, b1, c31);
+        x = _mm256_broadcast_sd(ar + 4), c40 = _mm256_fmadd_pd(x, b0, c40), c41 = _mm256_fmadd_pd(x, b1, c41);
+        x = _mm256_broadcast_sd(ar + 5), c50 = _mm256_fmadd_pd(x, b0, c50), c51 = _mm256_fmadd_pd(x, b1, c51);
+        x = _mm256_broadcast_sd(ar + 6), c60 = _mm256_fmadd_pd(x, b0, c60), c61 = _mm256_fmadd_pd(x, b1, c61);
+        x = _mm256_broadcast_sd(ar + 7), c70 = _mm256_fmadd_pd(x, b0, c70), c71 = _mm256_fmadd_pd(x, b1, c71);
+    }
+    const __m256d acc[kMR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31},
+                                 {c40, c41}, {c50, c51}, {c60, c61}, {c70, c71}};
+    for (int64_t t = 0; t < kMR; ++t) {
+        double *ct = c + t * ld;
+        _mm256_storeu_pd(ct, _mm256_add_pd(_mm256_loadu_pd(ct), acc[t][0]));
+        _mm256_storeu_pd(ct + 4, _mm256_add_pd(_mm256_loadu_pd(ct + 4), acc[t][1]));
+    }
+}
+
+__attribute__((target("avx2,fma"))) void tile_avx2(const double *a, const double *b, int64_t kc, int64_t ld,
+                                                   double *c) {
+    tile_avx2_half(a, b, kc, ld, c);
+    tile_avx2_half(a, b + 8, kc, ld, c + 8);
+}
+#endif
+
+TileFn pick_tile() {
+    const char *env = std::getenv("FASTMAC_GEMM");
+    const std::string want = env ? env : "";
+    if (want == "generic") return tile_generic;
+#ifdef FASTMAC_X86_GEMM
+    if (want != "avx2" && __builtin_cpu_supports("avx512f")) return tile_avx512;
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return tile_avx2;
+#endif
+    return tile_generic;
+}
+
+bool dense_core_enabled() {
+    const char *env = std::getenv("FASTMAC_DENSE_CORE");
+    return !(env && std::string(env) == "off");
+}
+
+struct Core {
+    int64_t m = 0, ld = 0;
+    std::vector<int32_t> pos;   // node -> index in C, or -1
+    std::vector<int32_t> rows;  // K, the rows of D
+};
+
+// The core and K (m = 0: no dense core worth a matrix product).
+Core find_core(const Csr &V) {
+    Core core;
     const int64_t n = V.n;
-    std::vector<double> S(V.nnz(), 0.0);
+    if (n < 256 || !dense_core_enabled()) return core;
+    std::vector<int32_t> order(n);
+    std::iota(order.begin(), order.end(), 0);
+    auto deg = [&](int32_t i) { return V.ptr[i + 1] - V.ptr[i]; };
+    std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) { return deg(a) > deg(b); });
+    int64_t m = 0;
+    for (int64_t t = 1; t <= n; ++t)
+        if (4 * deg(order[t - 1]) >= t) m = t;
+    if (m < 128) return core;
+    core.pos.assign(n, -1);
+    for (int64_t a = 0; a < m; ++a) core.pos[order[a]] = (int32_t)a;
+    int64_t inside = 0;
+    std::vector<int64_t> deg_core(n, 0);
+    for (int64_t k = 0; k < n; ++k)
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) deg_core[k] += core.pos[V.col[p]] >= 0;
+    for (int64_t a = 0; a < m; ++a) inside += deg_core[order[a]];
+    if (5 * inside < m * m) {  // inside counts each core edge twice: fewer than a fifth of the pairs linked
+        core.pos.clear();
+        return core;
+    }
+    core.m = m;
+    core.ld = (m + kNR - 1) / kNR * kNR;
+    for (int64_t k = 0; k < n; ++k)
+        if (4 * deg_core[k] >= m) core.rows.push_back((int32_t)k);
+    return core;
+}
+
+// P (m x ld, upper tiles) = sum over all k of V_ka V_kb for core nodes a, b.
+std::vector<double> core_products(const Csr &V, const std::vector<double> &vals, const Core &core, int nthreads) {
+    const int64_t m = core.m, ld = core.ld, nk = (int64_t)core.rows.size();
+    const int64_t mp = (m + kMR - 1) / kMR * kMR;  // rows of P, padded to whole tiles
+    std::vector<double> D((size_t)nk * ld, 0.0), P((size_t)mp * ld, 0.0);
+    std::vector<uint8_t> in_rows(V.n, 0);
+    for (int64_t r = 0; r < nk; ++r) {
+        const int32_t k = core.rows[r];
+        in_rows[k] = 1;
+        double *dr = D.data() + r * ld;
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
+            if (core.pos[V.col[p]] >= 0) dr[core.pos[V.col[p]]] = vals[p];
+    }
+    const TileFn tile = pick_tile();
+    // D's rows are padded to ld; the A operand reads columns i0..i0+7 < mp <= ld.
+    DynamicRange supers(0, (mp + kSuper - 1) / kSuper, 1);
+    parallel_region(nthreads, [&](int) {
+        int64_t lo, hi;
+        while (supers.next(lo, hi)) {
+            const int64_t r0 = lo * kSuper, r1 = std::min(mp, r0 + kSuper);
+            for (int64_t k0 = 0; k0 < nk; k0 += kKC) {
+                const int64_t kc = std::min(kKC, nk - k0);
+                const double *panel = D.data() + k0 * ld;
+                for (int64_t j0 = r0 / kNR * kNR; j0 < ld; j0 += kNR)
+                    for (int64_t i0 = r0; i0 < r1 && i0 < j0 + kNR; i0 += kMR)
+                        tile(panel + i0, panel + j0, kc, ld, P.data() + i0 * ld + j0);
+            }
+        }
+    });
+    // The nodes outside K: each pair of their core neighbours, a < b (a thread owns a range of rows a).
+    std::vector<int64_t> nb_ptr{0};
+    std::vector<int32_t> nb_a;
+    std::vector<double> nb_v;
+    for (int64_t k = 0; k < V.n; ++k) {
+        if (in_rows[k]) continue;
+        const size_t start = nb_a.size();
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
+            if (core.pos[V.col[p]] >= 0 && vals[p] != 0.0) {
+                nb_a.push_back(core.pos[V.col[p]]);
+                nb_v.push_back(vals[p]);
+            }
+        if (nb_a.size() - start < 2) {
+            nb_a.resize(start);
+            nb_v.resize(start);
+            continue;
+        }
+        std::vector<std::pair<int32_t, double>> tmp;
+        for (size_t q = start; q < nb_a.size(); ++q) tmp.emplace_back(nb_a[q], nb_v[q]);
+        std::sort(tmp.begin(), tmp.end());
+        for (size_t q = 0; q < tmp.size(); ++q) nb_a[start + q] = tmp[q].first, nb_v[start + q] = tmp[q].second;
+        nb_ptr.push_back((int64_t)nb_a.size());
+    }
+    const int64_t n_rest = (int64_t)nb_ptr.size() - 1;
+    if (n_rest > 0) {
+        DynamicRange blocks(0, (m + kSuper - 1) / kSuper, 1);
+        parallel_region(nthreads, [&](int) {
+            int64_t lo, hi;
+            while (blocks.next(lo, hi)) {
+                const int32_t a0 = (int32_t)(lo * kSuper), a1 = (int32_t)std::min<int64_t>(m, a0 + kSuper);
+                for (int64_t t = 0; t < n_rest; ++t) {
+                    const int32_t *na = nb_a.data() + nb_ptr[t], *ne = nb_a.data() + nb_ptr[t + 1];
+                    const double *nv = nb_v.data() + nb_ptr[t];
+                    const int32_t *q = std::lower_bound(na, ne, a0);
+                    for (; q < ne && *q < a1; ++q) {
+                        const double x = nv[q - na];
+                        double *pr = P.data() + (int64_t)*q * ld;
+                        for (const int32_t *u = q + 1; u < ne; ++u) pr[*u] += x * nv[u - na];
+                    }
+                }
+            }
+        });
+    }
+    return P;
+}
+
+}  // namespace
+
+std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads, int64_t *core_size) {
+    const int64_t n = V.n;
     const int64_t *ptr = V.ptr.data();
     const int32_t *col = V.col.data();
     const double *v = vals.data();
+    auto deg = [&](int64_t i) { return ptr[i + 1] - ptr[i]; };
+    // The work is ~ sum over edges of the smaller degree: serial only for small graphs.
+    nthreads = resolve_threads(nthreads, std::max<int64_t>(n, V.nnz() / 16));
+    const Core core = find_core(V);
+    if (core_size) *core_size = core.m;
+    std::vector<double> P;
+    if (core.m > 0) P = core_products(V, vals, core, nthreads);
+    const auto in_core = [&](int64_t i) { return core.m > 0 && core.pos[i] >= 0; };
+
+    std::vector<double> S(V.nnz(), 0.0);
+    std::vector<uint8_t> done(V.nnz(), 0);  // S[p] computed at p (else at its mirror)
     DynamicRange rows(0, n, 8);
     parallel_region(nthreads, [&](int) {
         // Row i of V scattered densely; zero elsewhere (k = i contributes nothing: no self-loops).
@@ -28,21 +273,30 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         double *d = dense.data();
         int64_t lo, hi;
         while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
-            if (V.upper[i] == ptr[i + 1]) continue;
-            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = v[p];
-            for (int64_t p = V.upper[i]; p < ptr[i + 1]; ++p) {
-                if (v[p] == 0.0) continue;  // no entry here (e.g. C where G = 0)
-                // d[j] = V_ij is never read: j is not its own neighbour. Four partial sums keep the
-                // loop from waiting on one addition chain (most terms are zero: d is sparse).
+            const bool ci = in_core(i);
+            const int64_t di = deg(i);
+            bool scattered = false;
+            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) {
                 const int32_t j = col[p];
-                const int64_t q0 = ptr[j], q1 = ptr[j + 1];
-                if (p + 2 < ptr[i + 1]) {  // rows j are scattered in memory: start fetching one ahead
-                    const int64_t r = ptr[col[p + 2]];
-                    for (int line = 0; line < 8; ++line) {
-                        __builtin_prefetch(col + r + 16 * line);
-                        __builtin_prefetch(v + r + 8 * line);
+                if (ci && in_core(j)) {
+                    if (j > i) {  // a core edge: from P
+                        const int64_t a = core.pos[i], b = core.pos[j];
+                        S[p] = v[p] * P[std::min(a, b) * core.ld + std::max(a, b)];
+                        done[p] = 1;
                     }
+                    continue;
                 }
+                // Owned by the endpoint with the longer row (ties: the smaller index), summed over the other.
+                const int64_t dj = deg(j);
+                if (dj > di || (dj == di && j < i)) continue;
+                done[p] = 1;
+                if (v[p] == 0.0) continue;  // no entry here (e.g. C where G = 0)
+                if (!scattered) {
+                    for (int64_t q = ptr[i]; q < ptr[i + 1]; ++q) d[col[q]] = v[q];
+                    scattered = true;
+                }
+                const int64_t q0 = ptr[j], q1 = ptr[j + 1];
+                // Four partial sums keep the loop from waiting on one addition chain.
                 double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
                 int64_t q = q0;
                 for (; q + 4 <= q1; q += 4) {
@@ -54,16 +308,24 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
                 for (; q < q1; ++q) a0 += d[col[q]] * v[q];
                 S[p] = v[p] * ((a0 + a1) + (a2 + a3));
             }
-            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = 0.0;
+            if (scattered)
+                for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = 0.0;
         }
     });
-    // Mirror the upper entries into the lower parts (row j's lower part is ordered by i).
+    // Each edge was computed at one of its two entries: copy it to the other. Row j's lower part is
+    // ordered by i, so a cursor per row finds the mirror of every upper entry.
     std::vector<int64_t> cursor(V.ptr.begin(), V.ptr.end() - 1);
     for (int64_t i = 0; i < n; ++i)
-        for (int64_t p = V.upper[i]; p < ptr[i + 1]; ++p) S[cursor[col[p]]++] = S[p];
+        for (int64_t p = V.upper[i]; p < ptr[i + 1]; ++p) {
+            const int64_t q = cursor[col[p]]++;
+            if (done[p]) S[q] = S[p];
+            else S[p] = S[q];
+        }
     return S;
 }
 
-std::vector<double> second_order(const Csr &W, int nthreads) { return masked_square(W, W.w, nthreads); }
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size) {
+    return masked_square(W, W.w, nthreads, core_size);
+}
 
 }  // namespace fastmac
