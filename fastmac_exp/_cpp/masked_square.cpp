@@ -39,7 +39,7 @@ namespace {
 
 constexpr int64_t kMR = 8;   // rows of a P tile
 constexpr int64_t kNR = 16;  // columns of a P tile (the leading dimension is a multiple of this)
-constexpr int64_t kKC = 64;  // rows of D per pass over a panel (the panel stays in L2)
+constexpr int64_t kKC = 64;     // rows of D per pass over a panel (the panel stays in L2)
 constexpr int64_t kSuper = 64;  // P rows one thread takes at a time (B tiles reused from L1)
 
 // acc[MR x NR] += sum_{r < kc} a[r * ld + (0..MR)] (x) b[r * ld + (0..NR)], then added into c (ld).
@@ -156,6 +156,8 @@ Core find_core(const Csr &V) {
         if (4 * deg(order[t - 1]) >= t) m = t;
     if (m < 128) return core;
     core.pos.assign(n, -1);
+    // Core indices in node order, so that a row's core neighbours read one row of P in order.
+    std::sort(order.begin(), order.begin() + m);
     for (int64_t a = 0; a < m; ++a) core.pos[order[a]] = (int32_t)a;
     int64_t inside = 0;
     std::vector<int64_t> deg_core(n, 0);
