@@ -122,7 +122,7 @@ nb::dict graph_edges(const Points &src, const Points &tgt, const std::string &ke
 }
 
 nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
-                       double threshold, bool self_loops, int num_threads) {
+                       double threshold, bool self_loops, bool single, int num_threads) {
     const int64_t n = check_pair(src, tgt);
     const auto gp = graph_params(kernel, alpha, tau, threshold);
     fastmac::Signals s;
@@ -130,7 +130,7 @@ nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &
         nb::gil_scoped_release nogil;
         fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
         int64_t dense_core = 0;
-        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core);
+        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core, single);
         s = fastmac::graph_signals(W, G, self_loops, num_threads);
         s.dense_core = dense_core;
     }
@@ -288,8 +288,10 @@ NB_MODULE(_mac_core, m) {
           "num_threads"_a = 0,
           "Upper-triangle edges (i < j) of W with their weights w and second-order weights g = G_ij.");
     m.def("graph_signals", &graph_signals, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
-          "self_loops"_a = true, "num_threads"_a = 0,
-          "Generalized degree, signed high-pass and low-pass responses of the SOG (spec 7.2-7.3).");
+          "self_loops"_a = true, "single"_a = true, "num_threads"_a = 0,
+          "Generalized degree, signed high-pass and low-pass responses of the SOG (spec 7.2-7.3). single: the "
+          "dense core's products in float32, as the reference computes this graph (relative error ~1e-6); "
+          "False: float64 throughout.");
     m.def("maximal_cliques", &maximal_cliques, "n"_a, "i"_a, "j"_a, "min_size"_a = 3, "max_cliques"_a = 0,
           "time_limit_s"_a = 0.0, "num_threads"_a = 0,
           "Every maximal clique of size >= min_size in canonical order, and the cap that stopped the search "

@@ -54,12 +54,13 @@ struct Csr {
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads);
 
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
-std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr);
+// single: the dense core's products in float32 (the sampler's graph; spec 7.2 computes it in float32).
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr, bool single = false);
 
 // S_ij = V_ij * sum_k V_ik V_kj for every stored entry of the pattern V (values vals, aligned with
 // V.col; zero values are allowed and give 0). Dense dot products inside the dense core (masked_square.cpp).
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
-                                  int64_t *core_size = nullptr);
+                                  int64_t *core_size = nullptr, bool single = false);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);

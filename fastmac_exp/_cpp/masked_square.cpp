@@ -25,11 +25,7 @@
 #include <numeric>
 #include <string>
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#include <immintrin.h>
-#define FASTMAC_X86_GEMM 1
-#endif
-
+#include "dense_tiles.hpp"
 #include "mac_core.hpp"
 #include "parallel.hpp"
 
@@ -37,98 +33,43 @@ namespace fastmac {
 
 namespace {
 
-constexpr int64_t kMR = 8;   // rows of a P tile
-constexpr int64_t kNR = 16;  // columns of a P tile (the leading dimension is a multiple of this)
+using tiles::kMR;
+using tiles::kNR;
 constexpr int64_t kKC = 64;     // rows of D per pass over a panel (the panel stays in L2)
 constexpr int64_t kSuper = 64;  // P rows one thread takes at a time (B tiles reused from L1)
 
-// acc[MR x NR] += sum_{r < kc} a[r * ld + (0..MR)] (x) b[r * ld + (0..NR)], then added into c (ld).
-using TileFn = void (*)(const double *a, const double *b, int64_t kc, int64_t ld, double *c);
-
-void tile_generic(const double *a, const double *b, int64_t kc, int64_t ld, double *c) {
-    double acc[kMR][kNR] = {};
+template <class T>
+void tile_generic(const T *a, const T *b, int64_t kc, int64_t ld, T *c) {
+    T acc[kMR][kNR<T>] = {};
     for (int64_t r = 0; r < kc; ++r) {
-        const double *ar = a + r * ld, *br = b + r * ld;
+        const T *ar = a + r * ld, *br = b + r * ld;
         for (int64_t t = 0; t < kMR; ++t) {
-            const double x = ar[t];
-            if (x == 0.0) continue;
-            for (int64_t u = 0; u < kNR; ++u) acc[t][u] += x * br[u];
+            const T x = ar[t];
+            if (x == 0) continue;
+            for (int64_t u = 0; u < kNR<T>; ++u) acc[t][u] += x * br[u];
         }
     }
     for (int64_t t = 0; t < kMR; ++t)
-        for (int64_t u = 0; u < kNR; ++u) c[t * ld + u] += acc[t][u];
+        for (int64_t u = 0; u < kNR<T>; ++u) c[t * ld + u] += acc[t][u];
 }
 
-#ifdef FASTMAC_X86_GEMM
-__attribute__((target("avx512f"))) void tile_avx512(const double *a, const double *b, int64_t kc, int64_t ld,
-                                                    double *c) {
-    __m512d c00 = _mm512_setzero_pd(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00,
-            c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00, c60 = c00, c61 = c00, c70 = c00, c71 = c00;
-    for (int64_t r = 0; r < kc; ++r) {
-        const double *ar = a + r * ld, *br = b + r * ld;
-        const __m512d b0 = _mm512_loadu_pd(br), b1 = _mm512_loadu_pd(br + 8);
-        __m512d x;
-        x = _mm512_set1_pd(ar[0]), c00 = _mm512_fmadd_pd(x, b0, c00), c01 = _mm512_fmadd_pd(x, b1, c01);
-        x = _mm512_set1_pd(ar[1]), c10 = _mm512_fmadd_pd(x, b0, c10), c11 = _mm512_fmadd_pd(x, b1, c11);
-        x = _mm512_set1_pd(ar[2]), c20 = _mm512_fmadd_pd(x, b0, c20), c21 = _mm512_fmadd_pd(x, b1, c21);
-        x = _mm512_set1_pd(ar[3]), c30 = _mm512_fmadd_pd(x, b0, c30), c31 = _mm512_fmadd_pd(x, b1, c31);
-        x = _mm512_set1_pd(ar[4]), c40 = _mm512_fmadd_pd(x, b0, c40), c41 = _mm512_fmadd_pd(x, b1, c41);
-        x = _mm512_set1_pd(ar[5]), c50 = _mm512_fmadd_pd(x, b0, c50), c51 = _mm512_fmadd_pd(x, b1, c51);
-        x = _mm512_set1_pd(ar[6]), c60 = _mm512_fmadd_pd(x, b0, c60), c61 = _mm512_fmadd_pd(x, b1, c61);
-        x = _mm512_set1_pd(ar[7]), c70 = _mm512_fmadd_pd(x, b0, c70), c71 = _mm512_fmadd_pd(x, b1, c71);
-    }
-    const __m512d acc[kMR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31},
-                                 {c40, c41}, {c50, c51}, {c60, c61}, {c70, c71}};
-    for (int64_t t = 0; t < kMR; ++t) {
-        double *ct = c + t * ld;
-        _mm512_storeu_pd(ct, _mm512_add_pd(_mm512_loadu_pd(ct), acc[t][0]));
-        _mm512_storeu_pd(ct + 8, _mm512_add_pd(_mm512_loadu_pd(ct + 8), acc[t][1]));
-    }
-}
-
-// Two half-width passes (columns 0-7, then 8-15) of 8 x 8 tiles: 16 ymm accumulators.
-__attribute__((target("avx2,fma"))) void tile_avx2_half(const double *a, const double *b, int64_t kc, int64_t ld,
-                                                        double *c) {
-    __m256d c00 = _mm256_setzero_pd(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00,
-            c31 = c00, c40 = c00, c41 = c00, c50 = c00, c51 = c00, c60 = c00, c61 = c00, c70 = c00, c71 = c00;
-    for (int64_t r = 0; r < kc; ++r) {
-        const double *ar = a + r * ld, *br = b + r * ld;
-        const __m256d b0 = _mm256_loadu_pd(br), b1 = _mm256_loadu_pd(br + 4);
-        __m256d x;
-        x = _mm256_broadcast_sd(ar + 0), c00 = _mm256_fmadd_pd(x, b0, c00), c01 = _mm256_fmadd_pd(x, b1, c01);
-        x = _mm256_broadcast_sd(ar + 1), c10 = _mm256_fmadd_pd(x, b0, c10), c11 = _mm256_fmadd_pd(x, b1, c11);
-        x = _mm256_broadcast_sd(ar + 2), c20 = _mm256_fmadd_pd(x, b0, c20), c21 = _mm256_fmadd_pd(x, b1, c21);
-        x = _mm256_broadcast_sd(ar + 3), c30 = _mm256_fmadd_pd(x, b0, c30), c31 = _mm256_fmadd_pd(x, b1, c31);
-        x = _mm256_broadcast_sd(ar + 4), c40 = _mm256_fmadd_pd(x, b0, c40), c41 = _mm256_fmadd_pd(x, b1, c41);
-        x = _mm256_broadcast_sd(ar + 5), c50 = _mm256_fmadd_pd(x, b0, c50), c51 = _mm256_fmadd_pd(x, b1, c51);
-        x = _mm256_broadcast_sd(ar + 6), c60 = _mm256_fmadd_pd(x, b0, c60), c61 = _mm256_fmadd_pd(x, b1, c61);
-        x = _mm256_broadcast_sd(ar + 7), c70 = _mm256_fmadd_pd(x, b0, c70), c71 = _mm256_fmadd_pd(x, b1, c71);
-    }
-    const __m256d acc[kMR][2] = {{c00, c01}, {c10, c11}, {c20, c21}, {c30, c31},
-                                 {c40, c41}, {c50, c51}, {c60, c61}, {c70, c71}};
-    for (int64_t t = 0; t < kMR; ++t) {
-        double *ct = c + t * ld;
-        _mm256_storeu_pd(ct, _mm256_add_pd(_mm256_loadu_pd(ct), acc[t][0]));
-        _mm256_storeu_pd(ct + 4, _mm256_add_pd(_mm256_loadu_pd(ct + 4), acc[t][1]));
-    }
-}
-
-__attribute__((target("avx2,fma"))) void tile_avx2(const double *a, const double *b, int64_t kc, int64_t ld,
-                                                   double *c) {
-    tile_avx2_half(a, b, kc, ld, c);
-    tile_avx2_half(a, b + 8, kc, ld, c + 8);
-}
-#endif
-
-TileFn pick_tile() {
+tiles::Kernels pick_kernels() {
     const char *env = std::getenv("FASTMAC_GEMM");
     const std::string want = env ? env : "";
-    if (want == "generic") return tile_generic;
-#ifdef FASTMAC_X86_GEMM
-    if (want != "avx2" && __builtin_cpu_supports("avx512f")) return tile_avx512;
-    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return tile_avx2;
+    if (want != "generic") {
+#ifdef FASTMAC_X86_TILES
+        if (want != "avx2" && __builtin_cpu_supports("avx512f")) return tiles::avx512_kernels();
+        if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return tiles::avx2_kernels();
 #endif
-    return tile_generic;
+    }
+    return {tile_generic<double>, tile_generic<float>};
+}
+
+template <class T>
+tiles::TileFn<T> pick_tile() {
+    const tiles::Kernels k = pick_kernels();
+    if constexpr (sizeof(T) == sizeof(double)) return k.d;
+    else return k.f;
 }
 
 bool dense_core_enabled() {
@@ -137,7 +78,7 @@ bool dense_core_enabled() {
 }
 
 struct Core {
-    int64_t m = 0, ld = 0;
+    int64_t m = 0;
     std::vector<int32_t> pos;   // node -> index in C, or -1
     std::vector<int32_t> rows;  // K, the rows of D
 };
@@ -169,26 +110,28 @@ Core find_core(const Csr &V) {
         return core;
     }
     core.m = m;
-    core.ld = (m + kNR - 1) / kNR * kNR;
     for (int64_t k = 0; k < n; ++k)
         if (4 * deg_core[k] >= m) core.rows.push_back((int32_t)k);
     return core;
 }
 
-// P (m x ld, upper tiles) = sum over all k of V_ka V_kb for core nodes a, b.
-std::vector<double> core_products(const Csr &V, const std::vector<double> &vals, const Core &core, int nthreads) {
-    const int64_t m = core.m, ld = core.ld, nk = (int64_t)core.rows.size();
+// P (m x ld, upper tiles) = sum over all k of V_ka V_kb for core nodes a, b, in T arithmetic.
+template <class T>
+std::vector<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core, int64_t ld,
+                             int nthreads) {
+    const int64_t m = core.m, nk = (int64_t)core.rows.size();
     const int64_t mp = (m + kMR - 1) / kMR * kMR;  // rows of P, padded to whole tiles
-    std::vector<double> D((size_t)nk * ld, 0.0), P((size_t)mp * ld, 0.0);
+    std::vector<T> D((size_t)nk * ld, T(0)), P((size_t)mp * ld, T(0));
     std::vector<uint8_t> in_rows(V.n, 0);
     for (int64_t r = 0; r < nk; ++r) {
         const int32_t k = core.rows[r];
         in_rows[k] = 1;
-        double *dr = D.data() + r * ld;
+        T *dr = D.data() + r * ld;
         for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
-            if (core.pos[V.col[p]] >= 0) dr[core.pos[V.col[p]]] = vals[p];
+            if (core.pos[V.col[p]] >= 0) dr[core.pos[V.col[p]]] = (T)vals[p];
     }
-    const TileFn tile = pick_tile();
+    const tiles::TileFn<T> tile = pick_tile<T>();
+    constexpr int64_t nr = kNR<T>;
     // D's rows are padded to ld; the A operand reads columns i0..i0+7 < mp <= ld.
     DynamicRange supers(0, (mp + kSuper - 1) / kSuper, 1);
     parallel_region(nthreads, [&](int) {
@@ -197,9 +140,9 @@ std::vector<double> core_products(const Csr &V, const std::vector<double> &vals,
             const int64_t r0 = lo * kSuper, r1 = std::min(mp, r0 + kSuper);
             for (int64_t k0 = 0; k0 < nk; k0 += kKC) {
                 const int64_t kc = std::min(kKC, nk - k0);
-                const double *panel = D.data() + k0 * ld;
-                for (int64_t j0 = r0 / kNR * kNR; j0 < ld; j0 += kNR)
-                    for (int64_t i0 = r0; i0 < r1 && i0 < j0 + kNR; i0 += kMR)
+                const T *panel = D.data() + k0 * ld;
+                for (int64_t j0 = r0 / nr * nr; j0 < ld; j0 += nr)
+                    for (int64_t i0 = r0; i0 < r1 && i0 < j0 + nr; i0 += kMR)
                         tile(panel + i0, panel + j0, kc, ld, P.data() + i0 * ld + j0);
             }
         }
@@ -207,21 +150,21 @@ std::vector<double> core_products(const Csr &V, const std::vector<double> &vals,
     // The nodes outside K: each pair of their core neighbours, a < b (a thread owns a range of rows a).
     std::vector<int64_t> nb_ptr{0};
     std::vector<int32_t> nb_a;
-    std::vector<double> nb_v;
+    std::vector<T> nb_v;
     for (int64_t k = 0; k < V.n; ++k) {
         if (in_rows[k]) continue;
         const size_t start = nb_a.size();
         for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
             if (core.pos[V.col[p]] >= 0 && vals[p] != 0.0) {
                 nb_a.push_back(core.pos[V.col[p]]);
-                nb_v.push_back(vals[p]);
+                nb_v.push_back((T)vals[p]);
             }
         if (nb_a.size() - start < 2) {
             nb_a.resize(start);
             nb_v.resize(start);
             continue;
         }
-        std::vector<std::pair<int32_t, double>> tmp;
+        std::vector<std::pair<int32_t, T>> tmp;
         for (size_t q = start; q < nb_a.size(); ++q) tmp.emplace_back(nb_a[q], nb_v[q]);
         std::sort(tmp.begin(), tmp.end());
         for (size_t q = 0; q < tmp.size(); ++q) nb_a[start + q] = tmp[q].first, nb_v[start + q] = tmp[q].second;
@@ -236,11 +179,11 @@ std::vector<double> core_products(const Csr &V, const std::vector<double> &vals,
                 const int32_t a0 = (int32_t)(lo * kSuper), a1 = (int32_t)std::min<int64_t>(m, a0 + kSuper);
                 for (int64_t t = 0; t < n_rest; ++t) {
                     const int32_t *na = nb_a.data() + nb_ptr[t], *ne = nb_a.data() + nb_ptr[t + 1];
-                    const double *nv = nb_v.data() + nb_ptr[t];
+                    const T *nv = nb_v.data() + nb_ptr[t];
                     const int32_t *q = std::lower_bound(na, ne, a0);
                     for (; q < ne && *q < a1; ++q) {
-                        const double x = nv[q - na];
-                        double *pr = P.data() + (int64_t)*q * ld;
+                        const T x = nv[q - na];
+                        T *pr = P.data() + (int64_t)*q * ld;
                         for (const int32_t *u = q + 1; u < ne; ++u) pr[*u] += x * nv[u - na];
                     }
                 }
@@ -252,7 +195,8 @@ std::vector<double> core_products(const Csr &V, const std::vector<double> &vals,
 
 }  // namespace
 
-std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads, int64_t *core_size) {
+std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads, int64_t *core_size,
+                                  bool single) {
     const int64_t n = V.n;
     const int64_t *ptr = V.ptr.data();
     const int32_t *col = V.col.data();
@@ -262,8 +206,19 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     nthreads = resolve_threads(nthreads, std::max<int64_t>(n, V.nnz() / 16));
     const Core core = find_core(V);
     if (core_size) *core_size = core.m;
-    std::vector<double> P;
-    if (core.m > 0) P = core_products(V, vals, core, nthreads);
+    // P in double, or in float (the sampler's graph, as the reference computes it: spec 7.2)
+    std::vector<double> Pd;
+    std::vector<float> Pf;
+    int64_t ld = 0;
+    if (core.m > 0) {
+        const int64_t nr = single ? kNR<float> : kNR<double>;
+        ld = (core.m + nr - 1) / nr * nr;
+        if (single) Pf = core_products<float>(V, vals, core, ld, nthreads);
+        else Pd = core_products<double>(V, vals, core, ld, nthreads);
+    }
+    const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b
+        return single ? (double)Pf[a * ld + b] : Pd[a * ld + b];
+    };
     const auto in_core = [&](int64_t i) { return core.m > 0 && core.pos[i] >= 0; };
 
     std::vector<double> S(V.nnz(), 0.0);
@@ -283,7 +238,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
                 if (ci && in_core(j)) {
                     if (j > i) {  // a core edge: from P
                         const int64_t a = core.pos[i], b = core.pos[j];
-                        S[p] = v[p] * P[std::min(a, b) * core.ld + std::max(a, b)];
+                        S[p] = v[p] * core_value(std::min(a, b), std::max(a, b));
                         done[p] = 1;
                     }
                     continue;
@@ -326,8 +281,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     return S;
 }
 
-std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size) {
-    return masked_square(W, W.w, nthreads, core_size);
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size, bool single) {
+    return masked_square(W, W.w, nthreads, core_size, single);
 }
 
 }  // namespace fastmac
