@@ -111,17 +111,18 @@ for study in "${STUDIES[@]}"; do
         # shellcheck disable=SC2046
         sweep "$OUT/time_profile_$d/mac" $(data_args "$d") sampler=none
       done ;;
-    descriptor)  # Fig. desc: FPFH vs the learned descriptor (descriptors/fcgf_lite.onnx), seed 0, the first
-      # $SMALL_N synthetic pairs
-      # a private correspondence cache, emptied first: the cache key holds the descriptor's config, not the
-      # ONNX model's contents, so entries from an earlier model would be reused
+    descriptor)  # Fig. desc: FPFH against the learned descriptors, seed 0, the first $SMALL_N synthetic
+      # pairs: fcgf_lite (trained here) everywhere, BUFFER (published weights; 10-50 s per fragment on this
+      # CPU) on the real pairs only (DESC_SYNTHETIC="fpfh,fcgf_lite,buffer" adds it to the synthetic ones).
+      # A private correspondence cache, emptied first.
       rm -rf "$OUT/_cache_descriptor"
       for d in $DATA; do
         [ "$d" = kitti ] && [ "${KITTI_ALL:-0}" != 1 ] && continue  # RR saturated there; slow cliques
-        lim=""; synthetic "$d" && lim="dataset.limit=$SMALL_N"
+        lim=""; descs=fpfh,fcgf_lite,buffer
+        synthetic "$d" && lim="dataset.limit=$SMALL_N" && descs=${DESC_SYNTHETIC:-fpfh,fcgf_lite}
         # shellcheck disable=SC2046
         sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d") $lim \
-          cache.dir="$OUT/_cache_descriptor"
+          descriptor="$descs" cache.dir="$OUT/_cache_descriptor"
       done ;;
     sota)  # Tables kitti/3dmatch/3dlomatch: MAC, FastMAC@50/20 and peers on the same correspondences
       # Open3D's RANSAC on correspondences takes ~1 s per 1k iterations here (one thread, 5,000 rows), so
