@@ -69,12 +69,15 @@ sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, ti
   echo "  code: $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- fastmac_exp || echo ' + uncommitted changes under fastmac_exp/'); C++ core: $CORE" >>"$LOG"
   # a crash (e.g. the C++ extension rebuilt under a running sweep) is retried: the same command into the
   # same directory resumes every member run, skipping its finished pairs
+  local again=()
+  [ "${RESUME:-0}" = 1 ] && again=(resume=auto)
   for attempt in 1 2 3; do
-    if python docs/pinned_run.py -m "$@" "${COMMON[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
+    if python docs/pinned_run.py -m "$@" "${COMMON[@]}" "${again[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
       echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
       return 0
     fi
     echo "[$(date +%T)]   attempt $attempt failed; resuming" | tee -a "$LOG"
+    again=(resume=auto)  # the finished members and pairs are kept
   done
   echo "[$(date +%T)]   FAILED after 3 attempts" | tee -a "$LOG"
   return 1

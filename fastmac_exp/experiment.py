@@ -167,18 +167,22 @@ def run_experiment(
     ratio = cfg.get("ratio")
     if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
         raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
-    run_dir = Path(cfg.resume) if cfg.get("resume") else Path(run_dir)
-    if cfg.get("resume") and not run_dir.is_dir():
-        raise InputError(f"resume={cfg.resume}: no such run directory")
+    resume = cfg.get("resume")
+    # resume=auto: continue this run's own directory if it holds results (sweep members, whose directories
+    # Hydra names; `resume` is left out of their names), else start it
+    auto = resume is True or (isinstance(resume, str) and resume.lower() == "auto")
+    run_dir = Path(run_dir) if auto or not resume else Path(resume)
+    if resume and not auto and not run_dir.is_dir():
+        raise InputError(f"resume={resume}: no such run directory")
     run_dir.mkdir(parents=True, exist_ok=True)
     _save_config(cfg, run_dir)
 
     comp = Components(cfg)
     names = comp.names()
-    if not cfg.get("resume") and (run_dir / "results.jsonl").exists():
+    if not resume and (run_dir / "results.jsonl").exists():
         raise InputError(
-            f"{run_dir} already holds results; pass resume={run_dir} to continue that run, "
-            "or choose a new run directory"
+            f"{run_dir} already holds results; pass resume={run_dir} (resume=auto in a sweep) to continue "
+            "that run, or choose a new run directory"
         )
     results = ResultsLog(run_dir)
     done = results.done()

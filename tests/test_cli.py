@@ -39,3 +39,30 @@ def test_config_value_errors_exit_2_with_our_message(tmp_path):
     assert "family must be one of" in out and "Error in call to target" not in out
     p = run("dataset.limit=0", tmp=tmp_path)
     assert p.returncode == 2 and "dataset.limit must be >= 1" in p.stdout + p.stderr
+
+
+def sweep(*overrides: str, sweep_dir: Path) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "run.py", "-m", *overrides, "tracker=none", "progress=false",
+           f"hydra.sweep.dir={sweep_dir}"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_auto(tmp_path):
+    """A sweep member in which every pair fails (here: missing files) is a measurement, not the end of the
+    sweep; rerunning the same sweep into the same directory needs resume=auto and keeps every row once."""
+    import pandas as pd
+
+    args = ("dataset=pairs", "dataset.source=nosuch_a.ply,nosuch_b.ply", "dataset.target=nosuch_c.ply")
+    first = sweep(*args, sweep_dir=tmp_path)
+    assert first.returncode == 0, first.stderr[-2000:]
+    members = sorted(p.parent for p in tmp_path.glob("*/results.jsonl"))
+    assert len(members) == 2  # the second member ran after the first one failed on every pair
+    again = sweep(*args, sweep_dir=tmp_path)
+    assert again.returncode != 0 and "already holds results" in again.stdout + again.stderr
+    resumed = sweep(*args, "resume=auto", sweep_dir=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert sorted(p.parent for p in tmp_path.glob("*/results.jsonl")) == members  # no new directories
+    for m in members:
+        rows = pd.read_csv(m / "results.csv")
+        assert len(rows) == 1 and rows["error"].str.contains("point cloud file not found").all()
