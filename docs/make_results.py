@@ -671,10 +671,13 @@ class Results:
                     self.notes.append(f"descriptor robustness, {data}, {d}: {len(err)} failed row(s), e.g. "
                                       f"`{err.iloc[0][:160]}`")  # fmt: skip
         if aggs:
-            title = "Descriptor robustness: FastMAC (high-pass) on FPFH and on the learned descriptor"
+            title = "Descriptor robustness: FastMAC (high-pass) on FPFH and on the learned descriptors"
             self.add(
                 figure(line_figure(aggs, "descriptor_robustness.png", title), "descriptor robustness"), ""
             )
+        extra = DOCS / "buffer_real_pairs.md"  # descriptors/evaluate.py --real, written up by hand
+        if extra.exists():
+            self.add(*[ln for ln in extra.read_text().splitlines() if not ln.startswith("<!--")], "")
 
     # -- 6. time profile --------------------------------------------------------------------------------
     def profile(self) -> None:
