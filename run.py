@@ -14,6 +14,32 @@ from fastmac_exp.errors import FastMacError
 
 log = logging.getLogger("fastmac_exp")
 
+# hydra/launcher option -> (the Hydra plugin module it needs, the package that installs it)
+LAUNCHER_PLUGINS = {
+    "slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "ray_cluster": ("hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher"),
+}
+
+
+def check_launcher(argv: list[str]) -> str | None:
+    """The install hint for a `hydra/launcher=NAME` override whose plugin is missing, else None (Hydra's
+    own message, "Could not load 'hydra/launcher/submitit_slurm'", names neither the plugin nor the package)."""
+    import importlib.util
+
+    for arg in argv:
+        key, _, name = arg.lstrip("+~").partition("=")
+        if key != "hydra/launcher" or name not in LAUNCHER_PLUGINS:
+            continue
+        module, package = LAUNCHER_PLUGINS[name]
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:
+            found = False
+        if not found:
+            return (f"hydra/launcher={name} needs the Hydra plugin {package!r}, which is not installed: "
+                    f"pip install {package}")  # fmt: skip
+    return None
+
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float:
@@ -51,4 +77,9 @@ def _own_error(exc: BaseException) -> FastMacError | None:
 
 
 if __name__ == "__main__":
+    hint = check_launcher(sys.argv[1:])
+    if hint:
+        log.addHandler(logging.StreamHandler())
+        log.error(hint)
+        sys.exit(2)
     main()

@@ -66,3 +66,20 @@ def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_a
     for m in members:
         rows = pd.read_csv(m / "results.csv")
         assert len(rows) == 1 and rows["error"].str.contains("point cloud file not found").all()
+
+
+def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
+    import importlib.util
+
+    for launcher, package, module in [("slurm", "hydra-submitit-launcher", "hydra_plugins.hydra_submitit_launcher"),
+                                      ("ray_cluster", "hydra-ray-launcher", "hydra_plugins.hydra_ray_launcher")]:  # fmt: skip
+        try:
+            installed = importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:
+            installed = False
+        if installed:
+            continue  # the plugin is there: nothing to explain
+        p = sweep(f"hydra/launcher={launcher}", "dataset.limit=1", sweep_dir=tmp_path / launcher)
+        out = p.stdout + p.stderr
+        assert p.returncode == 2, out[-2000:]
+        assert f"pip install {package}" in out and "Could not load" not in out
