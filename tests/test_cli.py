@@ -83,3 +83,16 @@ def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
         out = p.stdout + p.stderr
         assert p.returncode == 2, out[-2000:]
         assert f"pip install {package}" in out and "Could not load" not in out
+
+
+def test_help_says_what_the_app_does_and_lists_the_groups():
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    p = subprocess.run([sys.executable, "run.py", "--help"], cwd=REPO, env=env, capture_output=True, text=True,
+                       timeout=60)  # fmt: skip
+    assert p.returncode == 0
+    out = p.stdout
+    assert out.startswith("fastmac-exp: FastMAC")
+    for line in ("sampler: allpass,", "method: fastmac20,", "experiment: descriptor_robustness,",
+                 "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05"):  # fmt: skip
+        assert line in out, line
+    assert "Powered by Hydra" not in out  # not Hydra's generic text
