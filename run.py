@@ -23,7 +23,7 @@ LAUNCHER_PLUGINS = {
 
 def check_launcher(argv: list[str]) -> str | None:
     """The install hint for a `hydra/launcher=NAME` override whose plugin is missing, else None (Hydra's
-    own message, "Could not load 'hydra/launcher/submitit_slurm'", names neither the plugin nor the package)."""
+    own message, "Could not load 'hydra/launcher/submitit_slurm'", names neither plugin nor package)."""
     import importlib.util
 
     for arg in argv:

@@ -483,7 +483,9 @@ def bench_outdoor(args) -> list[OutdoorRow]:
     return rows
 
 
-def signals_ms(corr: Correspondences, reps: int, threads: int, single: bool, dense: bool) -> tuple[float, int]:
+def signals_ms(
+    corr: Correspondences, reps: int, threads: int, single: bool, dense: bool
+) -> tuple[float, int]:
     """Median ms of the sampler's graph and signals (graph_signals), and the dense core's size."""
     import os
 
@@ -509,7 +511,9 @@ def signals_ms(corr: Correspondences, reps: int, threads: int, single: bool, den
 def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:
     """The sampler's second-order graph (issue 11, item 3): sparse gathers against the dense-core product."""
     print("\nSampler graph + signals (graph_signals, 5,000 correspondences, KITTI/FPFH kernel), median ms")
-    head = f"{'pair':34} {'core':>5} | {'sparse':>8} {'core f64':>9} {'core f32':>9} | {'x f64':>6} {'x f32':>6}"
+    head = (
+        f"{'pair':34} {'core':>5} | {'sparse':>8} {'core f64':>9} {'core f32':>9} | {'x f64':>6} {'x f32':>6}"
+    )
     print(head)
     print("-" * len(head))
     for name, corr in pairs:
@@ -517,11 +521,15 @@ def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:
         d64, m = signals_ms(corr, args.reps, args.threads, single=False, dense=True)
         d32, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True)
         print(
-            f"{name[:34]:34} {m:5d} | {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} | {sp_ms / d64:6.1f} {sp_ms / d32:6.1f}"
+            f"{name[:34]:34} {m:5d} | {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} | "
+            f"{sp_ms / d64:6.1f} {sp_ms / d32:6.1f}"
         )
         sys.stdout.flush()
     print("sparse: every product by gathers (FASTMAC_DENSE_CORE=off); core: the dense core's products as a")
-    print("matrix product in float64 or float32 (the sampler's default, as FastMAC's torch code); core = its nodes")
+    print(
+        "matrix product in float64 or float32 (the sampler's default, as FastMAC's torch code); "
+        "core = its nodes"
+    )
 
 
 def bench_outdoor_large(args) -> None:
@@ -545,7 +553,8 @@ def bench_outdoor_large(args) -> None:
         t_m = (time.perf_counter() - t1) * 1e3
         re = rotation_error_deg(res["pose"][:3, :3], gt[:3, :3])
         print(
-            f"  inliers {100 * inl:4.1f} %: sampling {t_s:6.0f} ms + MAC on {len(kept)} ({100 * kept.labels.mean():.0f} % "
+            f"  inliers {100 * inl:4.1f} %: sampling {t_s:6.0f} ms + MAC on {len(kept)} "
+            f"({100 * kept.labels.mean():.0f} % "
             f"inliers) {t_m:5.0f} ms = {t_s + t_m:6.0f} ms (target < 1000); RE {re:.2f} deg"
             + (f"; cap {res['cap_hit']}" if res["cap_hit"] else "")
         )

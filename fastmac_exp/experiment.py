@@ -303,6 +303,14 @@ def failure_reasons(table: pd.DataFrame) -> dict[str, dict[str, Any]]:
     }
 
 
+def _stage_label(stage: str, summary: dict[str, Any]) -> str:
+    cached = int(summary.get("describe_cached") or 0)
+    if stage != "describe" or not cached:
+        return stage
+    n = summary.get("pairs", 0)
+    return f"describe ({'all' if cached == n else f'{cached} of {n}'} from the cache: original times)"
+
+
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary table."""
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
@@ -315,7 +323,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"RR: {100 * s.get('RR', nan):.1f}%   RE: {s.get('RE_deg', nan):.2f} deg   "
         f"TE: {s.get('TE_cm', nan):.2f} cm   "
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
-        "median ms: " + "  ".join(f"{st} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
+        "median ms: "
+        + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")

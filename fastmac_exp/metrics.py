@@ -57,4 +57,7 @@ def summarize(table: pd.DataFrame) -> dict:
         col = f"t_{stage}_ms"
         if col in table:
             out[f"median_{stage}_ms"] = float(table[col].median())
+    # pairs whose correspondences came from the cache: their describe time is the original computation's
+    out["describe_cached"] = int(table["describe_cached"].fillna(False).astype(bool).sum()) if (
+        "describe_cached" in table) else 0  # fmt: skip
     return out

@@ -273,7 +273,12 @@ def make_report(root: str | Path, out: str | Path | None = None, plots: bool = T
 
         written = plot_all(agg, out_dir)
     n_runs = table["run"].nunique()
-    (out_dir / "report.md").write_text(render_markdown(agg, str(root), n_runs, written, out_dir))
+    text = render_markdown(agg, str(root), n_runs, written, out_dir)
+    if "describe_cached" in table and table["describe_cached"].fillna(False).astype(bool).any():
+        n_cached = int(table["describe_cached"].fillna(False).astype(bool).sum())
+        text += (f"\nDescribe times: {n_cached} of {len(table)} rows read their correspondences from the "
+                 "cache; their describe time is the one measured when the entry was computed.\n")  # fmt: skip
+    (out_dir / "report.md").write_text(text)
     return {"table": table, "aggregate": agg, "out_dir": out_dir, "plots": written}
 
 

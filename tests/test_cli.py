@@ -71,8 +71,11 @@ def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_a
 def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
     import importlib.util
 
-    for launcher, package, module in [("slurm", "hydra-submitit-launcher", "hydra_plugins.hydra_submitit_launcher"),
-                                      ("ray_cluster", "hydra-ray-launcher", "hydra_plugins.hydra_ray_launcher")]:  # fmt: skip
+    plugins = [
+        ("slurm", "hydra-submitit-launcher", "hydra_plugins.hydra_submitit_launcher"),
+        ("ray_cluster", "hydra-ray-launcher", "hydra_plugins.hydra_ray_launcher"),
+    ]
+    for launcher, package, module in plugins:
         try:
             installed = importlib.util.find_spec(module) is not None
         except ModuleNotFoundError:
@@ -87,8 +90,8 @@ def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
 
 def test_help_says_what_the_app_does_and_lists_the_groups():
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    p = subprocess.run([sys.executable, "run.py", "--help"], cwd=REPO, env=env, capture_output=True, text=True,
-                       timeout=60)  # fmt: skip
+    cmd = [sys.executable, "run.py", "--help"]
+    p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert p.returncode == 0
     out = p.stdout
     assert out.startswith("fastmac-exp: FastMAC")
@@ -96,3 +99,13 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
                  "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05"):  # fmt: skip
         assert line in out, line
     assert "Powered by Hydra" not in out  # not Hydra's generic text
+
+
+def test_summary_says_when_describe_times_come_from_the_cache(tmp_path):
+    cache = f"cache.dir={tmp_path / 'cache'}"
+    first = run("dataset.limit=1", cache, tmp=tmp_path / "a")
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert "from the cache" not in first.stdout and "median ms: describe " in first.stdout
+    second = run("dataset.limit=1", cache, tmp=tmp_path / "b")
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "describe (all from the cache: original times)" in second.stdout

@@ -120,7 +120,7 @@ def test_pair_screens_agree(monkeypatch, extent):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
     """Graphs with a dense core (outdoor-like: a large consistent group) take the matrix-product path
-    (masked_square.cpp); every kernel and the all-sparse path give W * (W W) and the signals of dense numpy."""
+    (masked_square.cpp); every kernel and the all-sparse path give W * (W W) and the dense numpy signals."""
     src, tgt, _, _ = clustered(900, 0.35, 0.004, seed)
     gp = ("quadratic", 0.06, 0.1, 0.8)
     w = dense_w(src, tgt, *gp)
@@ -128,8 +128,13 @@ def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
     i, j = np.nonzero(np.triu(w, 1))
     s, f, _ = dense_signals(w, True)
     cores = {}
-    for mode, env in [("sparse", {"FASTMAC_DENSE_CORE": "off"}), ("generic", {"FASTMAC_GEMM": "generic"}),
-                      ("avx2", {"FASTMAC_GEMM": "avx2"}), ("avx512", {"FASTMAC_GEMM": "avx512"})]:  # fmt: skip
+    modes = [
+        ("sparse", {"FASTMAC_DENSE_CORE": "off"}),
+        ("generic", {"FASTMAC_GEMM": "generic"}),
+        ("avx2", {"FASTMAC_GEMM": "avx2"}),
+        ("avx512", {"FASTMAC_GEMM": "avx512"}),
+    ]
+    for mode, env in modes:
         monkeypatch.delenv("FASTMAC_DENSE_CORE", raising=False)
         monkeypatch.delenv("FASTMAC_GEMM", raising=False)
         for k, v in env.items():
