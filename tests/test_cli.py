@@ -12,14 +12,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def run(*overrides: str, tmp: Path) -> subprocess.CompletedProcess:
-    cmd = [
-        sys.executable,
-        "run.py",
-        *overrides,
-        "tracker=none",
-        "progress=false",
-        f"hydra.run.dir={tmp / 'run'}",
-    ]
+    cmd = [sys.executable, "run.py", *overrides, "tracker=none", "progress=false"]
+    if not any(o.startswith("hydra.run.dir=") for o in overrides):
+        cmd.append(f"hydra.run.dir={tmp / 'run'}")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
 
@@ -109,3 +104,34 @@ def test_summary_says_when_describe_times_come_from_the_cache(tmp_path):
     second = run("dataset.limit=1", cache, tmp=tmp_path / "b")
     assert second.returncode == 0, second.stderr[-2000:]
     assert "describe (all from the cache: original times)" in second.stdout
+
+
+def _default_run_dir(tmp: Path) -> str:
+    """conf/config.yaml's hydra.run.dir with outputs/runs moved under tmp (the same name pattern)."""
+    import yaml
+
+    pattern = yaml.safe_load((REPO / "conf" / "config.yaml").read_text())["hydra"]["run"]["dir"]
+    return "hydra.run.dir='" + pattern.replace("outputs/runs", str(tmp)) + "'"  # quoted: the comma
+
+
+def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_leave_none(tmp_path):
+    runs = tmp_path / "runs"
+    p = run("sampler=none", "dataset.limit=1", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    assert made.name.endswith("_synthetic_fpfh_none_1.0"), made.name
+    # a config error and a resume= run leave no directory of their own
+    bad = run("dataset.family=kiti", _default_run_dir(runs), tmp=tmp_path)
+    assert bad.returncode == 2
+    again = run("sampler=none", "dataset.limit=1", f"resume={made}", _default_run_dir(runs), tmp=tmp_path)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert [d.name for d in runs.iterdir()] == [made.name]
+    assert list(made.glob("run.resumed-*.log"))  # the resumed run's log went with its results
+
+
+def test_a_key_typo_gets_the_closest_key_not_a_plus_suggestion(tmp_path):
+    p = run("dataset.famly=kitti", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2
+    assert "unknown config key 'dataset.famly'; did you mean 'dataset.family'?" in out
+    assert "+dataset.famly" not in out
