@@ -83,8 +83,15 @@ def main(cfg: DictConfig) -> float:
         sys.exit(2)
     if single and Path(summary["run_dir"]).resolve() != run_dir.resolve():
         drop_if_empty(run_dir, keep_log_in=Path(summary["run_dir"]))
-    print(format_summary(summary))
-    print(f"results: {summary['run_dir']}/results.parquet (and .csv, summary.json)")
+    # One write: parallel sweep members (joblib processes) share the console, and a pipe keeps a write of
+    # up to PIPE_BUF (4 KiB) bytes whole, so their summaries do not interleave.
+    text = (
+        format_summary(summary)
+        + f"\nresults: {summary['run_dir']}/results.parquet (and .csv, summary.json)\n"
+    )
+    sys.stdout.flush()
+    sys.stdout.write(text)
+    sys.stdout.flush()
     if summary.get("pairs", 0) and summary.get("failed", 0) == summary["pairs"]:
         log.error("every pair failed (reasons above)")
         # A single run fails; a sweep member is a measurement (e.g. random sampling at 1 % registers

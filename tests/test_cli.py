@@ -135,3 +135,19 @@ def test_a_key_typo_gets_the_closest_key_not_a_plus_suggestion(tmp_path):
     assert p.returncode == 2
     assert "unknown config key 'dataset.famly'; did you mean 'dataset.family'?" in out
     assert "+dataset.famly" not in out
+
+
+def test_parallel_sweep_members_print_whole_summaries(tmp_path):
+    """Two joblib workers share the console: every summary block arrives in one piece."""
+    p = sweep("hydra/launcher=local", "sampler=highpass,random", "dataset.limit=1", sweep_dir=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = p.stdout.splitlines()
+    starts = [i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic descriptor=fpfh")]
+    assert len(starts) == 2
+    for i in starts:  # the block's lines follow each other, each one whole
+        assert lines[i + 1].startswith("pairs: 1  registered:")
+        assert lines[i + 2].startswith("RR: ") and lines[i + 3].startswith("median ms: ")
+        j = i + 4
+        while lines[j].startswith("failed x"):  # a failed pair's reason, if any
+            j += 1
+        assert lines[j].startswith("results: ")
