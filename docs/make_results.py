@@ -599,7 +599,7 @@ class Results:
         y = np.arange(len(sel))
         h = 0.38
         for off, col, color, lab in ((-h / 2, "prep_ms", "#8c8c8c", "preparation"),
-                                     (h / 2, "select_ms", "#c44e52", "sampling")):  # fmt: skip
+                                     (h / 2, "select_ms", "#c44e52", "selection")):  # fmt: skip
             vals = sel[col].to_numpy(float)
             ax.barh(y + off, vals, height=h, color=color, label=lab)
             for yi, v in zip(y + off, vals, strict=True):

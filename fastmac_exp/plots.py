@@ -67,13 +67,14 @@ def _color_map(labels: list[str]) -> dict[str, tuple]:
 
 def _ratio_axis(ax, ratios: np.ndarray) -> None:
     ratios = np.asarray([r for r in ratios if np.isfinite(r) and r > 0], float)
-    ticks = sorted(set(RATIO_TICKS) | set(np.round(ratios, 6).tolist()), reverse=True)
-    lo = min(min(ticks), *(ratios if len(ratios) else [1.0]))
+    # ticks only where there are data (a tick without a point reads as a missing measurement)
+    ticks = sorted(set(np.round(ratios, 6).tolist()) or {1.0}, reverse=True)
+    lo = min(ticks)
     ax.set_xscale("log")
     ax.set_xticks(ticks)
     ax.set_xticklabels([f"{t:g}" for t in ticks])
     ax.minorticks_off()
-    ax.set_xlim(1.25, lo / 1.25)  # inverted: from all correspondences down to the sparsest sample
+    ax.set_xlim(max(ticks) * 1.25, lo / 1.25)  # inverted: from the most kept down to the sparsest sample
     ax.set_xlabel("sampling ratio")
     ax.grid(True, which="major", alpha=0.3)
 
@@ -87,7 +88,9 @@ def plot_sampling(
     panels = _panels(agg)
     mkeys = _method_keys(agg)
     colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
-    fig, axes = plt.subplots(len(panels), 3, figsize=(14, 3.8 * len(panels)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(panels), 3, figsize=(14, 3.6 * len(panels) + 0.4), squeeze=False, layout="constrained"
+    )
     metrics = (("RR", "RR (%)"), ("RE_deg", "RE (deg)"), ("TE_cm", "TE (cm)"))
     for row, (panel, g) in enumerate(panels):
         for col, (metric, label) in enumerate(metrics):
@@ -108,7 +111,6 @@ def plot_sampling(
             ax.set_title(f"{panel}: {label}" if panel else label, fontsize=10)
         axes[row, 0].legend(fontsize=8, loc="best")
     fig.suptitle(title, fontsize=12)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / fig.get_figheight()))  # room for the title
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -117,7 +119,8 @@ def plot_sampling(
 def plot_time_profile(
     agg: pd.DataFrame,
     path: Path,
-    title: str = "Time profile: median time per stage (bars: stage medians; line: median total)",
+    title: str = "Time profile: median time per stage (bars: stage medians; line: median total; "
+    "y scales differ)",
 ) -> Path | None:
     """Stacked median stage times against ratio; one panel per method, one row per dataset x descriptor."""
     stages = [s for s in PROFILE_STAGES if f"t_{s}_ms" in agg and agg[f"t_{s}_ms"].notna().any()]
@@ -126,9 +129,11 @@ def plot_time_profile(
     panels = _panels(agg)
     mkeys = _method_keys(agg)
     ncols = max(len(_methods(g, mkeys)) for _, g in panels)
+    # each panel its own y scale: one slow method (FPS) would flatten the others' bars to nothing
     fig, axes = plt.subplots(
-        len(panels), ncols, figsize=(max(4.2 * ncols, 6), 3.8 * len(panels)), squeeze=False, sharey="row"
-    )
+        len(panels), ncols, figsize=(max(4.2 * ncols, 6), 3.6 * len(panels) + 0.4), squeeze=False,
+        layout="constrained",
+    )  # fmt: skip
     for row, (panel, g) in enumerate(panels):
         methods = _methods(g, mkeys)
         for col in range(ncols):
@@ -155,15 +160,16 @@ def plot_time_profile(
             ax.set_xlabel("sampling ratio")
             ax.set_title(f"{panel}: {lab}" if panel else lab, fontsize=10)
             ax.grid(True, axis="y", alpha=0.3)
-        axes[row, 0].set_ylabel("median time (ms)")
+        for ax in axes[row]:
+            if ax.get_visible():
+                ax.set_ylabel("median time (ms)")
     legend: dict = {}
     for ax in axes.flat:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
     fig.suptitle(title, fontsize=12)
-    fig.legend(handles, labels, loc="lower center", fontsize=8, ncols=len(labels), frameon=False)
-    fig.tight_layout(rect=(0, 0.06 / len(panels), 1, 1 - 0.45 / fig.get_figheight()))
+    axes[0, 0].legend(handles, labels, loc="upper right", fontsize=7, framealpha=0.85)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
