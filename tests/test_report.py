@@ -165,3 +165,35 @@ def test_plots_with_several_datasets_backends_and_seeds(tmp_path):
     paths = plot_all(agg, tmp_path)
     assert [p.name for p in paths] == ["sampling.png", "time_profile.png", "rr_vs_time.png"]
     assert all(p.stat().st_size > 20000 for p in paths)
+
+
+def _figures(monkeypatch):
+    """The figures the plot functions make (captured when they close them)."""
+    from fastmac_exp import plots
+
+    figs = []
+    real_close = plots.plt.close
+    monkeypatch.setattr(plots.plt, "close", lambda fig=None: (figs.append(fig), real_close(fig)))
+    return figs
+
+
+def test_time_profile_panels_keep_their_own_scale_and_ratio_axes_show_only_data(tmp_path, monkeypatch):
+    """A slow method (FPS, ~400 ms) must not flatten a fast one's bars (~10 ms), and a ratio axis has ticks
+    only where there are data."""
+    from fastmac_exp.plots import plot_sampling, plot_time_profile
+
+    rows = []
+    for sampler, ms in (("fps", 400.0), ("highpass", 10.0)):
+        for ratio in (0.5, 0.2):
+            row = _row(0, sampler, ratio, 0, True, 1.0, 2.0, ms / 4, ms)
+            row.update(t_sampling_ms=ms / 2)
+            rows.append(row)
+    agg = aggregate(pd.DataFrame(rows))
+    figs = _figures(monkeypatch)
+    plot_time_profile(agg, tmp_path / "t.png")
+    plot_sampling(agg, tmp_path / "s.png")
+    (profile, sampling) = figs
+    tops = sorted(ax.get_ylim()[1] for ax in profile.axes if ax.get_visible())
+    assert tops[0] < 50 and tops[-1] > 300  # each panel on its own scale
+    ticks = {round(t, 6) for t in sampling.axes[0].get_xticks()}
+    assert ticks == {0.5, 0.2}
