@@ -113,8 +113,10 @@ def test_sigkill_mid_run_then_resume_gives_one_row_per_pair(tmp_path):
 
 
 HARD_SCRIPT = """
+import signal
 import sys
 import numpy as np
+signal.signal(signal.SIGINT, signal.default_int_handler)  # even if the parent left SIGINT ignored
 sys.path.insert(0, {repo!r})
 from omegaconf import OmegaConf
 from fastmac_exp.experiment import run_experiment
