@@ -57,7 +57,12 @@ def summarize(table: pd.DataFrame) -> dict:
         col = f"t_{stage}_ms"
         if col in table:
             out[f"median_{stage}_ms"] = float(table[col].median())
-    # pairs whose correspondences came from the cache: their describe time is the original computation's
-    out["describe_cached"] = int(table["describe_cached"].fillna(False).astype(bool).sum()) if (
-        "describe_cached" in table) else 0  # fmt: skip
+    out["describe_cached"] = cached_rows(table)
     return out
+
+
+def cached_rows(table: pd.DataFrame) -> int:
+    """Rows whose correspondences came from the cache (their describe time is the original computation's)."""
+    if "describe_cached" not in table:
+        return 0
+    return int(table["describe_cached"].fillna(False).astype(bool).sum())

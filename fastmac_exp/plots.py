@@ -23,7 +23,6 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-RATIO_TICKS = (1.0, 0.5, 0.2, 0.1, 0.05, 0.01)
 PROFILE_STAGES = ("sampling", "graph", "cliques", "selection", "pose")
 STAGE_NAMES = {"sampling": "Sampling", "graph": "GC", "cliques": "MCS", "selection": "NCS", "pose": "PE"}
 STAGE_COLORS = {"sampling": "#4c72b0", "graph": "#dd8452", "cliques": "#55a868", "selection": "#c44e52",

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from fastmac_exp.metrics import cached_rows
 from fastmac_exp.results import LOG_NAME, load_table, read_rows, to_table
 
 log = logging.getLogger(__name__)
@@ -274,8 +275,8 @@ def make_report(root: str | Path, out: str | Path | None = None, plots: bool = T
         written = plot_all(agg, out_dir)
     n_runs = table["run"].nunique()
     text = render_markdown(agg, str(root), n_runs, written, out_dir)
-    if "describe_cached" in table and table["describe_cached"].fillna(False).astype(bool).any():
-        n_cached = int(table["describe_cached"].fillna(False).astype(bool).sum())
+    n_cached = cached_rows(table)
+    if n_cached:
         text += (f"\nDescribe times: {n_cached} of {len(table)} rows read their correspondences from the "
                  "cache; their describe time is the one measured when the entry was computed.\n")  # fmt: skip
     (out_dir / "report.md").write_text(text)
