@@ -105,8 +105,21 @@ def _rrd_contents(path: Path) -> dict[str, set[str]]:
     return out
 
 
+def _chunks(path: Path, entity: str) -> list:
+    from rerun.chunk import RrdReader
+
+    return [c for c in RrdReader(path).stream().to_chunks() if c.entity_path == entity]
+
+
+def _column(path: Path, entity: str, column: str) -> list:
+    """The first row of `column` at `entity` (static geometry is logged once)."""
+    chunks = [c for c in _chunks(path, entity) if column in c.to_record_batch().schema.names]
+    assert chunks, (entity, column)
+    return chunks[0].to_record_batch().column(column).to_pylist()[0]
+
+
 def test_rerun_per_run_recording(tmp_path, strict_rerun):
-    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+    from fastmac_exp.trackers.rerun_tracker import STAGE_BARS, RerunTracker
 
     outcomes = [
         make_outcome(0, "scene/a"),
@@ -121,44 +134,122 @@ def test_rerun_per_run_recording(tmp_path, strict_rerun):
     got = _rrd_contents(rrd)
     a = "/pairs/" + strict_rerun.escape_entity_path_part("scene/a")
     expected = {
+        "/": "AnnotationContext",
+        "/legend": "TextDocument",
         f"{a}/matches/source": "Points3D",
         f"{a}/matches/target": "Points3D",
-        f"{a}/matches/correspondences": "LineStrips3D",
+        f"{a}/matches/all": "LineStrips3D",
         f"{a}/matches/sampled": "LineStrips3D",
         f"{a}/matches/clique": "LineStrips3D",
+        f"{a}/registration": "TransformAxes3D",
         f"{a}/registration/target": "Points3D",
+        f"{a}/registration/source_before/source": "Points3D",
         f"{a}/registration/estimate": "Transform3D",
         f"{a}/registration/estimate/source": "Points3D",
         f"{a}/registration/gt": "Transform3D",
         f"{a}/registration/gt/source": "Points3D",
+        f"{a}/stage_ms": "BarChart",
         f"{a}/info": "TextDocument",
-        "/pairs/b/matches/correspondences": "LineStrips3D",  # no clouds: correspondences stand in
+        "/pairs/b/matches/all": "LineStrips3D",  # no clouds: correspondences stand in
         "/pairs/b/registration/estimate/source": "Points3D",
         "/metrics/time_ms/graph": "Scalars",
         "/metrics/time_ms/total": "Scalars",
-        "/metrics/running_rr": "Scalars",
+        "/metrics/describe_ms": "Scalars",
+        "/metrics/re_deg": "Scalars",
+        "/metrics/te_cm": "Scalars",
+        "/metrics/ratio/running_rr": "Scalars",
+        "/metrics/ratio/success": "Scalars",
         "/log": "TextLog",
     }
     for entity, archetype in expected.items():
         assert archetype in got.get(entity, set()), (entity, got.get(entity))
+    assert (
+        "TransformAxes3D" in got[f"{a}/registration/estimate"]
+        and "TransformAxes3D" in got[f"{a}/registration/gt"]
+    )
+    assert "/metrics/time_ms/describe" not in got  # describe has its own plot: it dwarfs the other stages
     assert not any(e.startswith("/pairs/d") for e in got)  # max_pairs=2 (the failed pair has no geometry)
     assert tracker.recorded == [a.lstrip("/"), "pairs/b"]
 
     # the scalars of every pair sit on the `pair` timeline, at the pair indices
-    from rerun.chunk import RrdReader
-
-    chunks = [c for c in RrdReader(rrd).stream().to_chunks() if c.entity_path == "/metrics/time_ms/graph"]
-    assert all("pair" in c.timeline_names for c in chunks)
-    seq = sorted(v for c in chunks for v in c.to_record_batch().column("pair").to_pylist())
+    chunks = _chunks(rrd, "/metrics/time_ms/graph")
+    seq = sorted(v for c in chunks if not c.is_static for v in c.to_record_batch().column("pair").to_pylist())
     assert seq == [0, 1, 3]
-    # clouds are capped at max_points, line colours follow the labels
-    lines = [
-        c for c in RrdReader(rrd).stream().to_chunks() if c.entity_path == f"{a}/matches/correspondences"
-    ]
-    colors = lines[0].to_record_batch().column("LineStrips3D:colors").to_pylist()[0]
-    assert len(colors) == 40
-    green = (40 << 24) | (200 << 16) | (60 << 8) | 255
-    assert colors[:20] == [green] * 20 and green not in colors[20:]
+    # a pair's geometry is static, so the second pair's views are not empty with the timeline at pair 0
+    for entity in (f"{a}/matches/clique", "/pairs/b/matches/sampled", "/pairs/b/registration/target"):
+        assert all(c.is_static for c in _chunks(rrd, entity)), entity
+    # the pair's own stage times, describe left out, in STAGE_BARS order
+    bars = _column(rrd, f"{a}/stage_ms", "BarChart:values")
+    assert np.allclose(bars[0]["buffer"], [outcomes[0].row[f"t_{s}_ms"] for s in STAGE_BARS])
+    blueprints = __import__("rerun.chunk", fromlist=["RrdReader"]).RrdReader(rrd).blueprints()
+    assert len(blueprints) == 1  # the default layout travels in the file
+
+
+def test_rerun_lines_classes_and_hover_ids(tmp_path, strict_rerun):
+    """Sampled lines are the kept set minus the clique; the clique has its own class; GT outliers are
+    thinned to max_outlier_lines and drawn thinner; every line's hover label names its correspondence."""
+    from fastmac_exp.trackers.rerun_tracker import CLIQUE, INLIER, OUTLIER, RerunTracker
+
+    n = 400
+    outcome = make_outcome(0, "a", n=n)  # first half inliers; kept = even ids
+    outcome.result.clique = np.arange(0, 20, 2)
+    tracker = RerunTracker(max_pairs=1, max_points=10_000, max_outlier_lines=30)
+    run_tracker(tracker, tmp_path, [outcome])
+    rrd = tmp_path / "recording.rrd"
+    ids = {
+        e: np.asarray(_column(rrd, f"/pairs/a/matches/{e}", "correspondence_id"))
+        for e in ("all", "sampled", "clique")
+    }
+    cls = {e: np.asarray(_column(rrd, f"/pairs/a/matches/{e}", "LineStrips3D:class_ids")) for e in ids}
+    labels = outcome.corr.labels
+    # all: every inlier, 30 of the 200 outliers
+    assert set(ids["all"][labels[ids["all"]]]) == set(range(n // 2))
+    assert (~labels[ids["all"]]).sum() == 30
+    # sampled: the kept ids without the clique, outliers thinned to 30
+    kept = set(outcome.result.kept.tolist()) - set(outcome.result.clique.tolist())
+    assert set(ids["sampled"]) <= kept
+    assert {i for i in kept if labels[i]} <= set(ids["sampled"].tolist())
+    assert (~labels[ids["sampled"]]).sum() == 30
+    assert sorted(ids["clique"].tolist()) == sorted(outcome.result.clique.tolist())
+    assert set(cls["clique"].tolist()) == {CLIQUE.id}
+    assert np.array_equal(cls["sampled"], np.where(labels[ids["sampled"]], INLIER.id, OUTLIER.id))
+    radii = np.asarray(_column(rrd, "/pairs/a/matches/sampled", "LineStrips3D:radii"))
+    assert np.all(
+        np.abs(radii[cls["sampled"] == OUTLIER.id]) < np.abs(radii[cls["sampled"] == INLIER.id]).min()
+    )
+    clique_r = np.abs(_column(rrd, "/pairs/a/matches/clique", "LineStrips3D:radii")).min()
+    assert clique_r > np.abs(radii).max()
+    tags = _column(rrd, "/pairs/a/matches/sampled", "LineStrips3D:labels")
+    assert [int(t.split()[0][1:]) for t in tags] == ids["sampled"].tolist()
+    assert all(("GT inlier" in t) == bool(labels[i]) for t, i in zip(tags, ids["sampled"], strict=True))
+    assert all(" score 1" in t for t in tags)  # the sampler's scores (all 1.0 in this outcome)
+
+
+@pytest.mark.parametrize(("family", "up", "expected"), [("kitti", None, "+z"), ("3dmatch", None, "-y"),
+                                                        ("3dmatch", "+z", "+z")])  # fmt: skip
+def test_rerun_up_axis(tmp_path, strict_rerun, family, up, expected):
+    from fastmac_exp.trackers.rerun_tracker import UP_AXES, RerunTracker, match_offset
+
+    outcome = make_outcome(0, "a")
+    outcome.pair.family = family
+    run_tracker(RerunTracker(max_pairs=1, up=up), tmp_path, [outcome])
+    rrd = tmp_path / "recording.rrd"
+    want = getattr(strict_rerun.ViewCoordinates, UP_AXES[expected]).as_arrow_array().to_pylist()[0]
+    for view in ("matches", "registration"):
+        assert _column(rrd, f"/pairs/a/{view}", "ViewCoordinates:xyz") == [want]
+    # flat z-up scans are stacked (target above the source); anything else sits beside it along +x
+    src, tgt = outcome.pair.src_cloud, outcome.pair.tgt_cloud
+    off = match_offset(src, tgt, expected)
+    axis = 2 if expected == "+z" else 0
+    assert off[axis] > 0 and np.count_nonzero(off) == 1
+    assert (tgt[:, axis] + off[axis]).min() > src[:, axis].max()
+
+
+def test_rerun_bad_up_axis_is_refused():
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+
+    with pytest.raises(ValueError, match="tracker.rerun.up"):
+        RerunTracker(up="up")
 
 
 def test_rerun_per_pair_files(tmp_path, strict_rerun):
@@ -312,12 +403,17 @@ def test_default_tracker_config_instantiates():
 
 
 def test_helpers():
-    from fastmac_exp.trackers.rerun_tracker import downsample, label_colors, safe_name
+    from fastmac_exp.trackers.rerun_tracker import downsample, label_classes, safe_name, thin_outliers
     from fastmac_exp.trackers.wandb_tracker import _number
 
     pts = np.arange(30.0).reshape(10, 3)
     assert len(downsample(pts, 4)) == 4 and downsample(pts, 100) is pts
-    assert label_colors(None, 2).tolist() == [[150, 150, 150]] * 2
+    assert label_classes(None, 2).tolist() == [0, 0]
+    assert label_classes(np.array([True, False]), 2).tolist() == [1, 2]
+    labels = np.arange(10) < 3
+    thinned = thin_outliers(np.arange(10), labels, 2)
+    assert thinned[:3].tolist() == [0, 1, 2] and len(thinned) == 5 and np.all(np.diff(thinned) > 0)
+    assert thin_outliers(np.arange(10), labels, -1).tolist() == list(range(10))
     assert safe_name("scene/a b") == "scene_a_b"
     assert _number(True) == 1 and _number(float("nan")) is None and _number(pd.NA) is None
     assert _number(np.float32(2.5)) == 2.5 and math.isclose(_number(3), 3)
