@@ -183,7 +183,40 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
     return "\n".join(lines)
 
 
-def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Path], out_dir: Path) -> str:
+def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: int) -> list[Path]:
+    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files, first runs first), for a machine
+    with no display to open the recordings on; `out_dir/pairs/<run>/<pair>.png`."""
+    if max_pairs <= 0:
+        return []
+    try:
+        from fastmac_exp.trackers.rerun_snapshot import snapshot_recording
+    except ImportError as exc:  # rerun-sdk missing: tables and plots still come
+        log.warning("no pair snapshots: %s", exc)
+        return []
+    written: list[Path] = []
+    for run in sorted(table["run"].unique()):
+        run_dir = root / run
+        rows = table[table["run"] == run]
+        titles = {str(r["pair"]): _pair_title(r) for _, r in rows.iterrows()}
+        sub = out_dir / "pairs" if run == "." else out_dir / "pairs" / run
+        for rrd in [run_dir / "recording.rrd", *sorted((run_dir / "rerun").glob("*.rrd"))]:
+            if len(written) >= max_pairs or not rrd.is_file():
+                continue
+            try:
+                written += snapshot_recording(rrd, sub, max_pairs - len(written), titles)
+            except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
+                log.warning("no snapshot of %s: %s", rrd, exc)
+    return written
+
+
+def _pair_title(r: pd.Series) -> str:
+    ok = "registered" if r.get("success") is True or r.get("success") == 1 else "not registered"
+    what = f"{r.get('sampler')}@{r.get('ratio'):g}" if isinstance(r.get("ratio"), int | float) else ""
+    return f"{r['pair']}  {what}  {ok}: RE {_fmt(r.get('re_deg'))} deg, TE {_fmt(r.get('te_cm'))} cm"
+
+
+def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Path], out_dir: Path,
+                    snapshots: list[Path] = ()) -> str:  # fmt: skip
     keys = group_keys(agg)
     constant = [k for k in keys if agg[k].nunique(dropna=False) == 1]
     section_keys = [k for k in ("dataset", "descriptor") if k in keys]
@@ -247,17 +280,21 @@ def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Pat
                 cells += [_fmt_ms(r[f"t_{s}_ms"]) for s in stages]
                 rows.append(cells)
             lines.append(markdown_table(header, rows, ["l"] * len(row_keys) + ["r"] * len(stages)))
-    if plots:
-        lines += ["", "## Plots", ""]
-        for p in plots:
+    for title, images in (("Plots", plots), ("Pairs (from the rerun recordings)", snapshots)):
+        if images:
+            lines += ["", f"## {title}", ""]
+        for p in images:
             rel = p.relative_to(out_dir) if p.is_relative_to(out_dir) else p
             lines += [f"![{p.stem}]({rel})", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
 # -- entry point ------------------------------------------------------------------------------------------
-def make_report(root: str | Path, out: str | Path | None = None, plots: bool = True) -> dict:
-    """Write report.md, report.csv and the plots for the runs below `root`; returns what was written."""
+def make_report(
+    root: str | Path, out: str | Path | None = None, plots: bool = True, snapshots: int = 4
+) -> dict:
+    """Write report.md, report.csv, the plots and PNG snapshots of up to `snapshots` recorded pairs for
+    the runs below `root`; returns what was written."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such directory")
@@ -273,14 +310,15 @@ def make_report(root: str | Path, out: str | Path | None = None, plots: bool = T
         from fastmac_exp.plots import plot_all
 
         written = plot_all(agg, out_dir)
+    pictures = pair_snapshots(root, table, out_dir, snapshots)
     n_runs = table["run"].nunique()
-    text = render_markdown(agg, str(root), n_runs, written, out_dir)
+    text = render_markdown(agg, str(root), n_runs, written, out_dir, pictures)
     n_cached = cached_rows(table)
     if n_cached:
         text += (f"\nDescribe times: {n_cached} of {len(table)} rows read their correspondences from the "
                  "cache; their describe time is the one measured when the entry was computed.\n")  # fmt: skip
     (out_dir / "report.md").write_text(text)
-    return {"table": table, "aggregate": agg, "out_dir": out_dir, "plots": written}
+    return {"table": table, "aggregate": agg, "out_dir": out_dir, "plots": written, "snapshots": pictures}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -291,10 +329,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("dir", help="a run directory or a sweep (multirun) directory")
     parser.add_argument("--out", default=None, help="output directory (default: <dir>/report)")
     parser.add_argument("--no-plots", action="store_true", help="tables only")
+    parser.add_argument(
+        "--snapshots", type=int, default=4, metavar="N",
+        help="PNG pictures of up to N pairs from the runs' rerun recordings (0: none; default 4)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
-        res = make_report(args.dir, args.out, plots=not args.no_plots)
+        res = make_report(args.dir, args.out, plots=not args.no_plots, snapshots=args.snapshots)
     except FileNotFoundError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -306,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nreport: {out_dir / 'report.md'}  table: {out_dir / 'report.csv'}")
     for p in res["plots"]:
         print(f"plot: {p}")
+    for p in res["snapshots"]:
+        print(f"pair: {p}")
     return 0
 
 
