@@ -14,6 +14,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp.errors import FastMacError
+from fastmac_exp.samplers import ratio_used
 
 log = logging.getLogger("fastmac_exp")
 
@@ -45,9 +46,7 @@ def check_launcher(argv: list[str]) -> str | None:
 
 
 # The ratio in a run directory's name: the one used (sampler=none keeps everything).
-OmegaConf.register_new_resolver(
-    "run_ratio", lambda sampler, ratio: 1.0 if sampler == "none" else ratio, replace=True
-)
+OmegaConf.register_new_resolver("run_ratio", ratio_used, replace=True)
 # What Hydra and the experiment write before the first pair: a directory holding nothing else is no run.
 EMPTY_RUN = {".hydra", "run.log", "config.yaml", "config.resumed.yaml"}
 

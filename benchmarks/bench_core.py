@@ -37,7 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from fastmac_exp.backends import cpp  # noqa: E402
+from fastmac_exp import core as cpp  # noqa: E402
+from fastmac_exp.backends.cpp import CppBackend  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
 from fastmac_exp.params import GraphParams, MacParams  # noqa: E402
 from fastmac_exp.transforms import random_rotation, rotation_error_deg  # noqa: E402
@@ -212,7 +213,7 @@ def bench_config(
     n = len(corr)
     row = Row(source=source, n=n, ratio=ratio)
     reps = args.reps if n < PYTHON_MAX_N else 1
-    cpp_backend = cpp.CppBackend(num_threads=args.threads)
+    cpp_backend = CppBackend(num_threads=args.threads)
 
     # cpp: sampling (high-pass scores on all n) + MAC on the kept ones; peak RSS over both
     reset_peak_rss()
@@ -505,7 +506,7 @@ def signals_ms(
             del os.environ["FASTMAC_DENSE_CORE"]
         else:
             os.environ["FASTMAC_DENSE_CORE"] = old
-    return statistics.median(times), int(out["dense_core"])
+    return statistics.median(times), int(out.dense_core)
 
 
 def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:

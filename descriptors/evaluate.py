@@ -118,7 +118,7 @@ def register_all(
     corr: Correspondences, pair: Pair, graph_key: str, backend, seed: int, threshold=None
 ) -> dict:
     from fastmac_exp.pipeline import register_correspondences
-    from fastmac_exp.registry import make_sampler
+    from fastmac_exp.samplers import make_sampler
 
     out = {}
     overrides = {"threshold": threshold} if threshold is not None else None
@@ -308,7 +308,7 @@ def main(argv: list[str] | None = None) -> None:
             "nothing to evaluate: give --real and/or --synthetic-pairs / --lomatch-pairs / --kitti-pairs"
         )
 
-    from fastmac_exp.registry import make_backend
+    from fastmac_exp.backends import make_backend
 
     names = list(args.descriptors)
     descriptors = make_descriptors(names, args.threads, args.fcgf_model)

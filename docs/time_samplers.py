@@ -26,7 +26,7 @@ import pandas as pd  # noqa: E402
 
 from fastmac_exp.datasets.synthetic import SyntheticDataset  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
-from fastmac_exp.deterministic import graph_shift_eigenvectors, greedy_e_optimal  # noqa: E402
+from fastmac_exp.samplers.deterministic import graph_shift_eigenvectors, greedy_e_optimal  # noqa: E402
 from fastmac_exp.graph import first_order  # noqa: E402
 from fastmac_exp.params import mac_params_for  # noqa: E402
 from fastmac_exp.samplers import (  # noqa: E402

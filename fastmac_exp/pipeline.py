@@ -22,14 +22,17 @@ from fastmac_exp.params import (
     mac_params_for,
 )
 from fastmac_exp.resolution import FIXED_RESOLUTION, resolution_for
-from fastmac_exp.samplers import NoSampler, Sampler, SampleResult
+from fastmac_exp.samplers import Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
 
 
 def check_not_degenerate(src: np.ndarray, tgt: np.ndarray) -> None:
-    """A pose from duplicated or collinear points is not determined: refuse it instead of guessing."""
+    """A pose from duplicated or collinear points is not determined: refuse it instead of guessing.
+    An empty set passes: the peer backends (RANSAC, FGR, ...) report no clique to check."""
+    if len(src) == 0 and len(tgt) == 0:
+        return
     for name, pts in (("source", src), ("target", tgt)):
         centred = pts - pts.mean(axis=0)
         sv = np.linalg.svd(centred, compute_uv=False) if len(pts) >= 2 else np.zeros(1)
@@ -63,8 +66,7 @@ def register_correspondences(
     kept = sample.indices
     result = backend.register(corr.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
-    if len(result.clique):  # peer backends (RANSAC, FGR, ...) report no clique
-        check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
+    check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores
@@ -90,7 +92,8 @@ def register(
     >>> result = register(src_xyz, tgt_xyz, family="3dmatch", voxel_size=0.05, ratio=0.2)
     >>> result.pose  # 4x4, maps source into target
     """
-    from fastmac_exp.registry import make_backend, make_sampler
+    from fastmac_exp.backends import make_backend
+    from fastmac_exp.samplers import make_sampler
 
     rng = np.random.default_rng(seed)
     sampler_obj = make_sampler(sampler) if isinstance(sampler, str) else sampler
@@ -221,13 +224,12 @@ def run_pair(
         inliers_in=int(corr.labels.sum()) if corr.labels is not None else None,
         inlier_ratio_in=corr.inlier_ratio,
     )
-    effective_ratio = 1.0 if isinstance(sampler, NoSampler) else ratio
     result, sample = register_correspondences(
-        corr, params, sampler, backend, effective_ratio, pair.family, rng, sample_graph=sample_graph
+        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     row.update(
-        ratio=effective_ratio,
+        ratio=sample.ratio,
         n_kept=len(result.kept),
         inlier_ratio_kept=float(kept_labels.mean()) if kept_labels is not None else np.nan,
         clique_size=len(result.clique),

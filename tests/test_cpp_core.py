@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import igraph
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fastmac_exp.backends import cpp, python_mac
+from fastmac_exp import core as cpp
+from fastmac_exp.backends import cpp as cpp_backend
+from fastmac_exp.backends import python_mac
 from fastmac_exp.errors import BackendUnavailable, RegistrationFailed
 from fastmac_exp.params import GraphParams, MacParams
 from fastmac_exp.transforms import kabsch, random_rotation, rotation_error_deg
@@ -95,7 +99,7 @@ def test_graph_edges_threads_agree_and_wrapper():
     one = cpp.graph_edges(src, tgt, gp, num_threads=1)
     two = cpp.graph_edges(src, tgt, gp, num_threads=2)
     for k in "ijwg":
-        np.testing.assert_array_equal(one[k], two[k])
+        np.testing.assert_array_equal(getattr(one, k), getattr(two, k))
 
 
 @pytest.mark.parametrize("extent", [3.0, 80.0])
@@ -180,10 +184,10 @@ def test_graph_signals_equal_dense_formula(self_loops, kernel, thr):
     out = cpp.graph_signals(src, tgt, gp, self_loops=self_loops)
     w = dense_w(src, tgt, kernel, 0.05, 0.1, thr)
     s, f, low = dense_signals(w, self_loops)
-    np.testing.assert_allclose(out["degree"], s, rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(out["highpass"], f, rtol=1e-9, atol=1e-7 * np.abs(s).max() ** 2)
-    np.testing.assert_allclose(out["lowpass"], low, rtol=1e-12, atol=1e-9)
-    assert out["n_edges"] == int((np.triu(w, 1) > 0).sum())
+    np.testing.assert_allclose(out.degree, s, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(out.highpass, f, rtol=1e-9, atol=1e-7 * np.abs(s).max() ** 2)
+    np.testing.assert_allclose(out.lowpass, low, rtol=1e-12, atol=1e-9)
+    assert out.n_edges == int((np.triu(w, 1) > 0).sum())
 
 
 def test_graph_signals_isolated_nodes():
@@ -193,12 +197,12 @@ def test_graph_signals_isolated_nodes():
     gp = GraphParams("quadratic", 0.05, 0.1, 0.99)
     on = cpp.graph_signals(src, tgt, gp, self_loops=True)
     off = cpp.graph_signals(src, tgt, gp, self_loops=False)
-    assert on["n_edges"] == 0 and off["n_edges"] == 0
-    np.testing.assert_array_equal(on["degree"], np.ones(4))
-    np.testing.assert_array_equal(on["highpass"], np.zeros(4))
-    np.testing.assert_array_equal(on["lowpass"], np.full(4, 2.0))
+    assert on.n_edges == 0 and off.n_edges == 0
+    np.testing.assert_array_equal(on.degree, np.ones(4))
+    np.testing.assert_array_equal(on.highpass, np.zeros(4))
+    np.testing.assert_array_equal(on.lowpass, np.full(4, 2.0))
     for k in ("degree", "highpass", "lowpass"):
-        np.testing.assert_array_equal(off[k], np.zeros(4))
+        np.testing.assert_array_equal(getattr(off, k), np.zeros(4))
 
 
 def test_four_node_hand_example():
@@ -235,23 +239,21 @@ def test_four_node_hand_example():
     gp = GraphParams("quadratic", alpha=1.0, tau=1.0, threshold=0.8)
 
     e = cpp.graph_edges(src, tgt, gp)
-    np.testing.assert_array_equal(e["i"], [0, 0, 1, 2])
-    np.testing.assert_array_equal(e["j"], [1, 2, 2, 3])
-    np.testing.assert_allclose(e["w"], [1.0, 0.96, 0.96, 0.91], atol=1e-12)
-    np.testing.assert_allclose(e["g"], [0.9216, 0.9216, 0.9216, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(e.i, [0, 0, 1, 2])
+    np.testing.assert_array_equal(e.j, [1, 2, 2, 3])
+    np.testing.assert_allclose(e.w, [1.0, 0.96, 0.96, 0.91], atol=1e-12)
+    np.testing.assert_allclose(e.g, [0.9216, 0.9216, 0.9216, 0.0], atol=1e-12)
 
     off = cpp.graph_signals(src, tgt, gp, self_loops=False)
-    assert off["n_edges"] == 4
-    np.testing.assert_allclose(off["degree"], [1.8432, 1.8432, 1.8432, 0.0], atol=1e-12)
-    np.testing.assert_allclose(off["highpass"], [0.0, 0.0, 0.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(off["lowpass"], [3.6864, 3.6864, 3.6864, 0.0], atol=1e-12)
+    assert off.n_edges == 4
+    np.testing.assert_allclose(off.degree, [1.8432, 1.8432, 1.8432, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off.highpass, [0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off.lowpass, [3.6864, 3.6864, 3.6864, 0.0], atol=1e-12)
 
     on = cpp.graph_signals(src, tgt, gp, self_loops=True)
-    np.testing.assert_allclose(on["degree"], [8.608, 8.608, 10.8571, 3.4843], atol=1e-12)
-    np.testing.assert_allclose(
-        on["highpass"], [-6.21831168, -6.21831168, 24.64745472, -12.21083136], atol=1e-10
-    )
-    np.testing.assert_allclose(on["lowpass"], [17.93838751, 17.93838751, 19.44403074, 10.47312928], atol=1e-8)
+    np.testing.assert_allclose(on.degree, [8.608, 8.608, 10.8571, 3.4843], atol=1e-12)
+    np.testing.assert_allclose(on.highpass, [-6.21831168, -6.21831168, 24.64745472, -12.21083136], atol=1e-10)
+    np.testing.assert_allclose(on.lowpass, [17.93838751, 17.93838751, 19.44403074, 10.47312928], atol=1e-8)
 
 
 def test_graph_input_validation():
@@ -349,9 +351,9 @@ def test_clique_caps_are_recorded():
     assert is_canonical(got)
 
     corr, _ = make_correspondences(n=600, inlier_ratio=0.05, noise=0.002, seed=3)
-    res = cpp.CppBackend().register(corr, MacParams(search="enumerate", max_cliques=2))
+    res = cpp_backend.CppBackend().register(corr, MacParams(search="enumerate", max_cliques=2))
     assert res.cap_hit == "max_cliques=2" and res.n_cliques == 2
-    res = cpp.CppBackend().register(corr, MacParams(max_nodes=2))
+    res = cpp_backend.CppBackend().register(corr, MacParams(max_nodes=2))
     assert res.cap_hit == "max_nodes=2" and res.search == "bnb"
 
 
@@ -400,7 +402,7 @@ def test_kabsch_matches_numpy():
 @pytest.mark.parametrize("kernel,alpha,thr", [("quadratic", 0.06, 0.99), ("gaussian", 0.02, 0.5)])
 def test_known_pose_recovered_with_95_percent_outliers(seed, kernel, alpha, thr):
     src, tgt, r, t = clustered(200, 0.05, 0.01, seed)  # 10 inliers with 1 cm noise
-    res = cpp.CppBackend().register(
+    res = cpp_backend.CppBackend().register(
         Correspondences(src, tgt), MacParams(graph=GraphParams(kernel, alpha, 0.1, thr), inlier_threshold=0.1)
     )
     assert rotation_error_deg(res.pose[:3, :3], r) < 2.0
@@ -413,7 +415,7 @@ def test_known_pose_recovered_with_95_percent_outliers(seed, kernel, alpha, thr)
 
 
 def test_mac_errors_are_registration_failed():
-    b = cpp.CppBackend()
+    b = cpp_backend.CppBackend()
     with pytest.raises(RegistrationFailed, match="need at least 3 correspondences, got 2"):
         b.register(Correspondences(np.zeros((2, 3)), np.zeros((2, 3))), MacParams())
     rng = np.random.default_rng(0)
@@ -432,7 +434,7 @@ def test_backend_unavailable_explains_how_to_build(monkeypatch):
     monkeypatch.setattr(cpp, "_IMPORT_ERROR", "No module named 'fastmac_exp._mac_core'")
     assert not cpp.available()
     with pytest.raises(BackendUnavailable, match="pip install") as err:
-        cpp.CppBackend()
+        cpp_backend.CppBackend()
     assert "CMake" in str(err.value) and "backend=python" in str(err.value)
 
 
@@ -501,7 +503,7 @@ def test_parity_with_python_backend(case):
     params = MacParams(graph=GraphParams(kernel, alpha, tau, thr), inlier_threshold=tau, min_clique_size=k)
     corr = Correspondences(src, tgt)
     a = python_mac.PythonBackend().register(corr, params)
-    enum = cpp.CppBackend().register(corr, replace(params, search="enumerate"))
+    enum = cpp_backend.CppBackend().register(corr, replace(params, search="enumerate"))
     assert (a.n_cliques, a.n_selected, a.n_edges, a.reduced) == (
         enum.n_cliques,
         enum.n_selected,
@@ -510,7 +512,7 @@ def test_parity_with_python_backend(case):
     )
     if extent < 10 and ratio == 0.5:
         assert a.reduced, "the dense case must exercise the reduction of spec 2.5"
-    b = cpp.CppBackend().register(corr, params)  # the default search: branch and bound
+    b = cpp_backend.CppBackend().register(corr, params)  # the default search: branch and bound
     assert b.search == "bnb" and b.cap_hit == ""
     for c in (enum, b):
         assert (c.n_selected, c.n_edges, c.reduced) == (a.n_selected, a.n_edges, a.reduced)
@@ -535,3 +537,24 @@ def test_parity_with_python_backend(case):
     assert [tuple(c.tolist()) for c in full["selected"]] == [tuple(c) for c in selected]
     assert [tuple(c.tolist()) for c in full_enum["selected"]] == [tuple(c) for c in selected]
     assert full["n_sog_edges"] == sp.triu(g, k=1).nnz
+
+
+def test_core_so_env_loads_a_pinned_copy(tmp_path):
+    """FASTMAC_CORE_SO=<file> loads the extension from that file (the studies pin one copy for a whole
+    run); a path that is no extension leaves the core unavailable with a message naming the variable."""
+    import shutil
+    import subprocess
+    import sys
+
+    copy = tmp_path / "pinned" / Path(core.__file__).name
+    copy.parent.mkdir()
+    shutil.copy(core.__file__, copy)
+    probe = "from fastmac_exp import core; print(core.available(), core.core().__file__)"
+    run = lambda so: subprocess.run(  # noqa: E731
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+        env={**os.environ, "FASTMAC_CORE_SO": str(so)},
+    )  # fmt: skip
+    ok = run(copy)
+    assert ok.returncode == 0 and ok.stdout.split() == ["True", str(copy)], ok.stderr
+    bad = run(tmp_path / "nothing.so")
+    assert bad.returncode != 0 and "FASTMAC_CORE_SO" in bad.stderr and "nothing.so" in bad.stderr

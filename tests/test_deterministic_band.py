@@ -11,8 +11,8 @@ import pytest
 
 from fastmac_exp.datasets.user_pairs import SharedRealPairs
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor
-from fastmac_exp.deterministic import DeterministicSampler
 from fastmac_exp.params import graph_params_for
+from fastmac_exp.samplers import DeterministicSampler
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 pytestmark = [

@@ -78,7 +78,7 @@ def test_sparse_graph_equals_dense(kernel):
 def test_torch_signals_match_numpy():
     pytest.importorskip("torch")
     from fastmac_exp.graph import graph_signals
-    from fastmac_exp.torch_graph import graph_signals_torch
+    from fastmac_exp.graph.torch_graph import graph_signals_torch
 
     corr, _ = make_correspondences(n=200, inlier_ratio=0.2, noise=0.003, seed=2)
     gp = graph_params_for("3dmatch", "fpfh")
@@ -203,7 +203,7 @@ def test_xyz_code_validation():
 
 
 def test_deterministic_sampler_greedy_hand_case():
-    from fastmac_exp.deterministic import greedy_e_optimal
+    from fastmac_exp.samplers.deterministic import greedy_e_optimal
 
     # rows: e1, e2, (e1+e2)/sqrt2 scaled down; picking e1 then e2 maximises sigma_min of the 2 x 2 block
     v = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.5], [0.9, 0.1]])
@@ -211,7 +211,7 @@ def test_deterministic_sampler_greedy_hand_case():
 
 
 def test_deterministic_sampler_refuses_beyond_caps():
-    from fastmac_exp.deterministic import DeterministicSampler
+    from fastmac_exp.samplers.deterministic import DeterministicSampler
 
     corr, _ = make_correspondences(n=300)
     gp, fam = _ctx()
@@ -244,7 +244,7 @@ def test_squared_option_squares_the_response():
 
 
 def test_deterministic_band_option():
-    from fastmac_exp.deterministic import DeterministicSampler
+    from fastmac_exp.samplers.deterministic import DeterministicSampler
 
     with pytest.raises(InputError, match="band"):
         DeterministicSampler(band="middle")

@@ -19,7 +19,8 @@ import scipy.sparse as sp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fastmac_exp.backends import cpp, python_mac
+from fastmac_exp import core as cpp
+from fastmac_exp.backends import python_mac
 
 core = cpp.core()
 REPO = Path(__file__).resolve().parents[1]
@@ -149,7 +150,7 @@ import numpy as np, signal, sys, time
 # installs no KeyboardInterrupt handler: this test is about the core, so install it
 signal.signal(signal.SIGINT, signal.default_int_handler)
 sys.path.insert(0, {repo!r})
-from fastmac_exp.backends import cpp
+from fastmac_exp import core as cpp
 n = 100
 a = np.triu(np.ones((n, n), dtype=bool), 1)
 a[np.arange(0, 80, 2), np.arange(1, 81, 2)] = False

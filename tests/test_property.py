@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fastmac_exp.backends import cpp
+from fastmac_exp.backends import cpp as cpp_backend
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.errors import RegistrationFailed
 from fastmac_exp.params import mac_params_for
@@ -38,8 +38,8 @@ def test_backends_agree_and_never_crash(seed, n, outlier_fraction, noise, family
     outcomes = []
     runs = [
         (PythonBackend(), params),
-        (cpp.CppBackend(), replace(params, search="enumerate")),
-        (cpp.CppBackend(), params),  # the default search: branch and bound
+        (cpp_backend.CppBackend(), replace(params, search="enumerate")),
+        (cpp_backend.CppBackend(), params),  # the default search: branch and bound
     ]
     for backend, p in runs:
         try:

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fastmac_exp.backends import make_backend
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor
 from fastmac_exp.pipeline import run_pair
-from fastmac_exp.registry import make_backend, make_sampler
+from fastmac_exp.samplers import make_sampler
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 pytestmark = [

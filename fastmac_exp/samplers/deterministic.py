@@ -24,7 +24,7 @@ import scipy.linalg
 from fastmac_exp.errors import InputError
 from fastmac_exp.graph import first_order
 from fastmac_exp.params import GraphParams
-from fastmac_exp.samplers import Sampler, SampleResult
+from fastmac_exp.samplers.base import Sampler, SampleResult
 from fastmac_exp.types import Correspondences
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.graph import GraphSignals
+from fastmac_exp.graph.signals import GraphSignals
 from fastmac_exp.params import GAUSSIAN, GraphParams
 
 
@@ -38,7 +38,7 @@ def graph_signals_torch(
     dtype: torch.dtype = torch.float64,
     block: int = 2048,
 ) -> GraphSignals:
-    """Degree, high-pass and low-pass responses (same definitions as fastmac_exp.graph)."""
+    """Degree, high-pass and low-pass responses (same definitions as fastmac_exp.graph.numpy_graph)."""
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise InputError("sampler.device=cuda but torch sees no CUDA device; use sampler.device=cpu")
     s_t = torch.as_tensor(src, dtype=dtype, device=device)

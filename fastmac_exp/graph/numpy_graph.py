@@ -6,11 +6,10 @@ stored sparse (only where W passes its threshold), so memory grows with the edge
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.sparse as sp
 
+from fastmac_exp.graph.signals import GraphSignals
 from fastmac_exp.params import GAUSSIAN, GraphParams
 
 
@@ -53,16 +52,6 @@ def second_order(w: sp.csr_matrix) -> sp.csr_matrix:
     g = w.multiply(w @ w).tocsr()
     g.eliminate_zeros()
     return g
-
-
-@dataclass
-class GraphSignals:
-    """Node signals of the graph the samplers score (spec 7.2-7.3)."""
-
-    degree: np.ndarray  # generalized degree s_i = sum_j SOG_ij
-    highpass: np.ndarray  # f = (diag(s) - SOG) s, signed
-    lowpass: np.ndarray  # (I + D^-1 SOG) s
-    n_edges: int  # first-order edges (unordered pairs)
 
 
 def signals_from_graph(w: sp.csr_matrix, self_loops: bool = True) -> GraphSignals:
