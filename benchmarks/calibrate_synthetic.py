@@ -29,14 +29,12 @@ sys.path.insert(0, str(ROOT))
 
 from fastmac_exp.datasets.scenes import rotation_angle_deg  # noqa: E402
 from fastmac_exp.datasets.synthetic import (  # noqa: E402
-    DEFAULT_VOXEL,
-    FAMILY_KIND,
     OVERLAP_MEASURE,
     SyntheticDataset,
     overlap_fraction,
 )
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
-from fastmac_exp.params import INLIER_THRESHOLD  # noqa: E402
+from fastmac_exp.families import FAMILIES  # noqa: E402
 from fastmac_exp.types import Pair  # noqa: E402
 
 # real pair id -> (group, family whose rules apply)
@@ -72,9 +70,9 @@ ORIENT = {"normals": "open3d"}
 
 
 def measure(pair: Pair, rng_seed: int = 0) -> dict:
-    kind = FAMILY_KIND[pair.family]
+    kind = FAMILIES[pair.family].kind
     t0 = time.perf_counter()
-    fpfh = FPFHDescriptor(voxel_size=DEFAULT_VOXEL[kind], orient_normals=ORIENT["normals"])
+    fpfh = FPFHDescriptor(voxel_size=FAMILIES[pair.family].voxel_size, orient_normals=ORIENT["normals"])
     corr = fpfh(pair, np.random.default_rng(rng_seed))
     t_fpfh = time.perf_counter() - t0
     vox, rad = OVERLAP_MEASURE[kind]
@@ -101,8 +99,8 @@ def real_rows(data: Path) -> list[dict]:
             gt=load_gt(data / entry["gt"]),
             src_cloud=load_cloud(data / entry["source"]),
             tgt_cloud=load_cloud(data / entry["target"]),
-            voxel_size=DEFAULT_VOXEL[FAMILY_KIND[family]],
-            inlier_threshold=INLIER_THRESHOLD[family],
+            voxel_size=FAMILIES[family].voxel_size,
+            inlier_threshold=FAMILIES[family].inlier_threshold,
         )
         rows.append({"group": group, "pair": entry["id"], **measure(pair)})
         print(f"  {group:26s} {entry['id']:40s} IR {rows[-1]['ir']:.3f}", file=sys.stderr, flush=True)

@@ -10,10 +10,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from fastmac_exp.errors import InputError
-
-GAUSSIAN = "gaussian"
-QUADRATIC = "quadratic"
-FAMILIES = ("3dmatch", "3dlomatch", "kitti")
+from fastmac_exp.families import FIXED_RESOLUTION, GAUSSIAN, QUADRATIC
+from fastmac_exp.families import family as family_record
 
 
 @dataclass(frozen=True)
@@ -90,49 +88,23 @@ class MacParams:
             )
 
 
-# (family, descriptor) -> (kernel, threshold); unknown descriptors fall back to the family default.
-_TABLE: dict[tuple[str, str], tuple[str, float]] = {
-    ("3dmatch", "fcgf"): (GAUSSIAN, 0.999),
-    ("3dmatch", "fpfh"): (GAUSSIAN, 0.995),
-    ("3dmatch", "spinnet"): (GAUSSIAN, 0.85),
-    ("3dmatch", "d3feat"): (GAUSSIAN, 0.85),
-    ("3dmatch", "predator"): (QUADRATIC, 0.999),
-    ("3dlomatch", "fcgf"): (GAUSSIAN, 0.99),
-    ("3dlomatch", "fpfh"): (GAUSSIAN, 0.99),
-    ("3dlomatch", "spinnet"): (GAUSSIAN, 0.85),
-    ("3dlomatch", "d3feat"): (GAUSSIAN, 0.85),
-    ("3dlomatch", "predator"): (QUADRATIC, 0.999),
-    ("kitti", "fpfh"): (QUADRATIC, 0.9),
-}
-_FAMILY_DEFAULT = {"3dmatch": (GAUSSIAN, 0.995), "3dlomatch": (GAUSSIAN, 0.99), "kitti": (QUADRATIC, 0.999)}
-INLIER_THRESHOLD = {"3dmatch": 0.1, "3dlomatch": 0.1, "kitti": 0.6}
-SUCCESS_THRESHOLDS = {"3dmatch": (15.0, 0.30), "3dlomatch": (15.0, 0.30), "kitti": (5.0, 0.60)}
-MIN_CLIQUE_SIZE = {"3dmatch": 3, "3dlomatch": 3, "kitti": 3}  # 4 for KITTI in igraph>=0.10 builds (spec 9.5)
-
-
-def check_family(family: str) -> str:
-    if family not in FAMILIES:
-        raise InputError(f"unknown dataset family {family!r}; expected one of {', '.join(FAMILIES)}")
-    return family
-
-
-def graph_params_for(family: str, descriptor: str, resolution: float = 0.006) -> GraphParams:
+def graph_params_for(family: str, descriptor: str, resolution: float = FIXED_RESOLUTION) -> GraphParams:
     """The reference graph parameters (spec table 2.2) for a dataset family and a descriptor."""
-    check_family(family)
-    kernel, thr = _TABLE.get((family, descriptor), _FAMILY_DEFAULT[family])
-    tau = INLIER_THRESHOLD[family]
-    return GraphParams(kernel=kernel, alpha=10.0 * resolution, tau=tau, threshold=thr)
+    fam = family_record(family)
+    kernel, thr = fam.graph(descriptor)
+    return GraphParams(kernel=kernel, alpha=10.0 * resolution, tau=fam.inlier_threshold, threshold=thr)
 
 
 def mac_params_for(
     family: str,
     descriptor: str,
-    resolution: float = 0.006,
+    resolution: float = FIXED_RESOLUTION,
     graph_overrides: dict[str, Any] | None = None,
     mac_overrides: dict[str, Any] | None = None,
 ) -> MacParams:
     """Resolve MAC's parameters for one pair; `None` values in the overrides mean 'use the table'."""
     graph = graph_params_for(family, descriptor, resolution)
+    fam = family_record(family)
     g = {k: v for k, v in (graph_overrides or {}).items() if v is not None}
     unknown = set(g) - {"kernel", "alpha", "tau", "threshold"}
     if unknown:
@@ -140,9 +112,7 @@ def mac_params_for(
             f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold"
         )
     graph = replace(graph, **g)
-    base = MacParams(
-        graph=graph, inlier_threshold=INLIER_THRESHOLD[family], min_clique_size=MIN_CLIQUE_SIZE[family]
-    )
+    base = MacParams(graph=graph, inlier_threshold=fam.inlier_threshold, min_clique_size=fam.min_clique_size)
     m = {k: v for k, v in (mac_overrides or {}).items() if v is not None}
     known = {
         "inlier_threshold",

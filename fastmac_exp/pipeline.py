@@ -12,16 +12,11 @@ from fastmac_exp.backends.base import Backend
 from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
+from fastmac_exp.families import FIXED_RESOLUTION
+from fastmac_exp.families import family as family_record
 from fastmac_exp.metrics import pose_errors
-from fastmac_exp.params import (
-    INLIER_THRESHOLD,
-    SUCCESS_THRESHOLDS,
-    GraphParams,
-    MacParams,
-    check_family,
-    mac_params_for,
-)
-from fastmac_exp.resolution import FIXED_RESOLUTION, resolution_for
+from fastmac_exp.params import GraphParams, MacParams, mac_params_for
+from fastmac_exp.resolution import resolution_for
 from fastmac_exp.samplers import Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -106,10 +101,9 @@ def register(
     else:
         if target is None:
             raise InputError("register(source, target): a target cloud is needed when source is a cloud")
-        from fastmac_exp.datasets.user_pairs import DEFAULT_VOXEL
         from fastmac_exp.io import clean_cloud
 
-        re_max, te_max = SUCCESS_THRESHOLDS[check_family(family)]
+        fam = family_record(family)
         src = clean_cloud(np.asarray(source, dtype=np.float64), "source cloud")[0]
         tgt = clean_cloud(np.asarray(target, dtype=np.float64), "target cloud")[0]
         resolution = resolution_for(family, src, tgt)
@@ -119,10 +113,8 @@ def register(
             src_cloud=src,
             tgt_cloud=tgt,
             resolution=resolution,
-            voxel_size=voxel_size or DEFAULT_VOXEL[family],
-            inlier_threshold=INLIER_THRESHOLD[family],
-            re_thresh_deg=re_max,
-            te_thresh_m=te_max,
+            voxel_size=voxel_size or fam.voxel_size,
+            **fam.thresholds(),
         )
         if descriptor is None:
             from fastmac_exp.descriptors.fpfh import FPFHDescriptor

@@ -19,9 +19,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FAMILIES, FIXED_RESOLUTION
 
-FIXED_RESOLUTION = 0.006  # FastMAC's and the spec's 3DMatch value (a full-resolution fragment: ~0.00604)
-COMPUTED_FAMILIES = ("3dmatch", "3dlomatch")  # where MAC computes it from the clouds
+COMPUTED_FAMILIES = tuple(f.name for f in FAMILIES.values() if f.resolution_from_clouds)
 
 
 def mesh_resolution(points: np.ndarray) -> float:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FIXED_RESOLUTION
 
 MAX_COORD = 1e6  # metres; anything beyond is taken as a unit or parsing error
 
@@ -96,7 +97,7 @@ class Pair:
     inlier_threshold: float = 0.1
     re_thresh_deg: float = 15.0
     te_thresh_m: float = 0.3
-    resolution: float = 0.006  # MAC's Gaussian kernel: alpha = 10 res (fastmac_exp.resolution)
+    resolution: float = FIXED_RESOLUTION  # MAC's Gaussian kernel: alpha = 10 res (fastmac_exp.resolution)
     scene: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
 

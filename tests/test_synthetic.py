@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.datasets.synthetic import SyntheticDataset, load_cached
 from fastmac_exp.errors import InputError
-from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
+from fastmac_exp.families import FAMILIES
 from fastmac_exp.resolution import pair_resolution
 
 TINY_INDOOR = {"points_per_scan": 6000}
@@ -75,8 +75,8 @@ def test_gt_is_rigid_and_fields(which, request):
         assert np.isfinite(cloud).all()
     fam = "3dmatch" if which == "indoor_pair" else "kitti"
     assert pair.family == fam
-    assert pair.inlier_threshold == INLIER_THRESHOLD[fam]
-    assert (pair.re_thresh_deg, pair.te_thresh_m) == SUCCESS_THRESHOLDS[fam]
+    assert pair.inlier_threshold == FAMILIES[fam].inlier_threshold
+    assert (pair.re_thresh_deg, pair.te_thresh_m) == (FAMILIES[fam].re_thresh_deg, FAMILIES[fam].te_thresh_m)
     assert pair.voxel_size == (0.05 if fam == "3dmatch" else 0.3)
     if fam == "3dmatch":  # computed from the clouds as MAC does (the default scans: ~0.0097 m)
         assert pair.resolution == pytest.approx(pair_resolution(pair.src_cloud, pair.tgt_cloud))

@@ -31,13 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from fastmac_exp.datasets.mac_layout import (
-    INDOOR_VOXEL,
-    KITTI_VOXEL,
     LOMATCH_SUFFIX,
     SCENES_3DMATCH,
-    _thresholds,
 )
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FAMILIES, check_family, family
 from fastmac_exp.io import (
     GtLogEntry,
     check_rigid,
@@ -48,7 +46,6 @@ from fastmac_exp.io import (
     read_kitti_poses,
     read_kitti_velo_to_cam,
 )
-from fastmac_exp.params import check_family
 from fastmac_exp.resolution import COMPUTED_FAMILIES, FIXED_RESOLUTION, file_resolution
 from fastmac_exp.types import Pair
 
@@ -103,7 +100,7 @@ class Fragments3DMatch:
         gt_root: str | Path | None = None,
         scenes: Sequence[str] | None = None,
         family: str = "3dmatch",
-        voxel_size: float = INDOOR_VOXEL,
+        voxel_size: float = FAMILIES["3dmatch"].voxel_size,
         resolution: float | None = None,
     ) -> None:
         self.root = root
@@ -203,7 +200,7 @@ class Fragments3DMatch:
             resolution=self._resolution(files),
             scene=scene,
             meta={"source": f"cloud_bin_{e.j}", "target": f"cloud_bin_{e.i}", "gt_log": str(log)},
-            **_thresholds(self.family),
+            **family(self.family).thresholds(),
         )
 
 
@@ -254,7 +251,7 @@ class KittiRaw:
         pairs: Sequence[Sequence[int]] | None = None,
         sequences: Sequence[int] = (8, 9, 10),
         min_distance: float = 10.0,
-        voxel_size: float = KITTI_VOXEL,
+        voxel_size: float = FAMILIES["kitti"].voxel_size,
     ) -> None:
         self.root = root
         self.pairs = pairs
@@ -373,5 +370,5 @@ class KittiRaw:
                 "target": f"{b:06d}",
                 "distance_m": float(np.linalg.norm(poses[a][:3, 3] - poses[b][:3, 3])),
             },
-            **_thresholds("kitti"),
+            **FAMILIES["kitti"].thresholds(),
         )

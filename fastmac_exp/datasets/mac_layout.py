@@ -26,8 +26,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FAMILIES, family
 from fastmac_exp.io import read_correspondence_array, read_labels, read_matrix
-from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
 from fastmac_exp.resolution import FIXED_RESOLUTION, file_resolution
 from fastmac_exp.types import Correspondences, Pair
 
@@ -43,19 +43,12 @@ SCENES_3DMATCH = (
 )
 LOMATCH_SUFFIX = "_3dlomatch"
 SCENES_3DLOMATCH = tuple(s + LOMATCH_SUFFIX for s in SCENES_3DMATCH)
-KITTI_VOXEL = 0.3
-INDOOR_VOXEL = 0.05
 
 WHERE_TO_GET = (
     "Get the data: MAC's released benchmark correspondences (download links in the 'Datasets' section of "
     "https://github.com/zhangxy0517/3D-Registration-with-Maximal-Cliques; FastMAC's README, "
     "https://github.com/Forrest-110/FastMAC, points to the same release)."
 )
-
-
-def _thresholds(family: str) -> dict:
-    re_deg, te_m = SUCCESS_THRESHOLDS[family]
-    return {"inlier_threshold": INLIER_THRESHOLD[family], "re_thresh_deg": re_deg, "te_thresh_m": te_m}
 
 
 def _file_names(descriptor: str) -> tuple[str, str, str, str]:
@@ -175,7 +168,7 @@ class ThreeDMatchMAC:
         plys = [scene_dir / f"{src}.ply", scene_dir / f"{tgt}.ply"]
         if all(p.is_file() for p in plys):
             return 0.5 * (file_resolution(plys[0]) + file_resolution(plys[1])), "clouds"
-        return FIXED_RESOLUTION, "0.006 (no .ply clouds in the scene folder)"
+        return FIXED_RESOLUTION, f"{FIXED_RESOLUTION} (no .ply clouds in the scene folder)"
 
     # -- index -----------------------------------------------------------------------------------------
     def _title(self) -> str:
@@ -261,11 +254,11 @@ class ThreeDMatchMAC:
             d / f"{pname}{gt}",
             self._layout(),
             self.family,
-            voxel_size=INDOOR_VOXEL,
+            voxel_size=FAMILIES[self.family].voxel_size,
             resolution=resolution,
             scene=scene,
             meta={"source": src, "target": tgt, "descriptor": self.descriptor, "resolution_from": res_from},
-            **_thresholds(self.family),
+            **family(self.family).thresholds(),
         )
 
 
@@ -338,8 +331,8 @@ class KittiMAC:
             d / f"{desc}@gtmat.txt",
             layout_kitti(desc),
             "kitti",
-            voxel_size=KITTI_VOXEL,
+            voxel_size=FAMILIES["kitti"].voxel_size,
             scene="kitti",
             meta={"descriptor": desc},
-            **_thresholds("kitti"),
+            **FAMILIES["kitti"].thresholds(),
         )

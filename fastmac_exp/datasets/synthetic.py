@@ -42,17 +42,14 @@ from scipy.spatial import cKDTree
 
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.errors import InputError
-from fastmac_exp.params import INLIER_THRESHOLD, SUCCESS_THRESHOLDS
+from fastmac_exp.families import FAMILIES
 from fastmac_exp.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 log = logging.getLogger(__name__)
 
 GEN_VERSION = 1  # bump when generation changes, so old cache files are not reused
-FAMILY_KIND = {"3dmatch": "indoor", "3dlomatch": "indoor", "kitti": "outdoor"}
-_FAMILY_CODE = {"3dmatch": 1, "3dlomatch": 2, "kitti": 3}
 _ALIASES = {"indoor": "3dmatch", "outdoor": "kitti"}
-DEFAULT_VOXEL = {"indoor": 0.05, "outdoor": 0.3}  # the descriptor's voxel (pair.voxel_size)
 DEFAULT_CLOUD_VOXEL = {"indoor": 0.01, "outdoor": 0.1}  # density of the stored clouds
 # rays per indoor fragment / per LiDAR sweep (64 beams x 1800 azimuths = 0.2 deg, like KITTI)
 DEFAULT_POINTS = {"indoor": 120_000, "outdoor": 115_200}
@@ -85,7 +82,7 @@ class GenConfig:
 
     @property
     def kind(self) -> str:
-        return FAMILY_KIND[self.family]
+        return FAMILIES[self.family].kind
 
     def key(self, seed: int, index: int) -> str:
         blob = json.dumps([GEN_VERSION, dataclasses.asdict(self), int(seed), int(index)], sort_keys=True)
@@ -93,7 +90,7 @@ class GenConfig:
 
 
 def default_config(family: str, **overrides: Any) -> GenConfig:
-    kind = FAMILY_KIND[family]
+    kind = FAMILIES[family].kind
     lo, hi = DEFAULT_OVERLAP[family]
     base: dict[str, Any] = {
         "family": family,
@@ -130,7 +127,7 @@ def overlap_fraction(src: np.ndarray, tgt: np.ndarray, gt: np.ndarray, voxel: fl
 
 
 def _seed_rng(seed: int, family: str, index: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([int(seed), _FAMILY_CODE[family], int(index)]))
+    return np.random.default_rng(np.random.SeedSequence([int(seed), FAMILIES[family].code, int(index)]))
 
 
 def _indoor_attempt(cfg: GenConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -334,7 +331,7 @@ class SyntheticDataset:
         turn_range_deg: list[float] | tuple[float, float] | None = None,
     ) -> None:
         family = _ALIASES.get(family, family)
-        if family not in (*FAMILY_KIND, "mixed"):
+        if family not in (*FAMILIES, "mixed"):
             raise InputError(
                 f"synthetic family must be one of 3dmatch, 3dlomatch, kitti, mixed; got {family!r}"
             )
@@ -413,7 +410,6 @@ class SyntheticDataset:
             if path is not None:
                 save_cached(path, data)
         gen_ms = (time.perf_counter() - t0) * 1e3
-        re_deg, te_m = SUCCESS_THRESHOLDS[family]
         meta = dict(data["meta"])
         meta.update(seed=self.seed, index=k, kind=cfg.kind, cache=cache, load_ms=round(gen_ms, 1))
         if path is not None:
@@ -424,10 +420,8 @@ class SyntheticDataset:
             gt=data["gt"],
             src_cloud=data["src"],
             tgt_cloud=data["tgt"],
-            voxel_size=self.voxel_size if self.voxel_size is not None else DEFAULT_VOXEL[cfg.kind],
-            inlier_threshold=INLIER_THRESHOLD[family],
-            re_thresh_deg=re_deg,
-            te_thresh_m=te_m,
+            voxel_size=self.voxel_size if self.voxel_size is not None else FAMILIES[family].voxel_size,
+            **FAMILIES[family].thresholds(),
             resolution=resolution_for(family, data["src"], data["tgt"]),
             scene=f"synthetic-{cfg.kind}-s{self.seed}-{k:03d}",
             meta=meta,

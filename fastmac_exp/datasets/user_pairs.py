@@ -14,15 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fastmac_exp.datasets.mac_layout import INDOOR_VOXEL, KITTI_VOXEL, _thresholds
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
 from fastmac_exp.io import clean_cloud, read_matrix, read_points
-from fastmac_exp.params import check_family
 from fastmac_exp.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package
-DEFAULT_VOXEL = {"3dmatch": INDOOR_VOXEL, "3dlomatch": INDOOR_VOXEL, "kitti": KITTI_VOXEL}
 
 # The bunny (Stanford range scans, ~15 cm across, scan spacing ~0.5 mm) runs under the 3DMatch rules
 # rescaled to its size. The indoor pairs run at voxel 0.05 m with a 0.1 m inlier threshold (2 voxels),
@@ -40,7 +38,7 @@ OBJECT_RULES = {
     "inlier_threshold": 0.005,
     "re_thresh_deg": 15.0,
     "te_thresh_m": 0.01,
-    "resolution": 0.006 / 25,
+    "resolution": FIXED_RESOLUTION / 25,
 }
 
 
@@ -135,7 +133,7 @@ class UserPairs:
         src, ds = _load(s, "source cloud", self.drop_zeros)
         tgt, dt = _load(t, "target cloud", self.drop_zeros)
         gt = read_matrix(g) if g is not None else None
-        voxel = self.voxel_size if self.voxel_size is not None else DEFAULT_VOXEL[self.family]
+        voxel = self.voxel_size if self.voxel_size is not None else family(self.family).voxel_size
         return Pair(
             name=name,
             family=self.family,
@@ -152,7 +150,7 @@ class UserPairs:
                 "gt_file": None if g is None else str(g),
                 "dropped_points": (ds, dt),
             },
-            **_thresholds(self.family),
+            **family(self.family).thresholds(),
         )
 
 
@@ -241,13 +239,13 @@ class SharedRealPairs:
         if cat == "object":
             return dict(OBJECT_RULES)
         if cat == "outdoor":
-            family, voxel = "kitti", KITTI_VOXEL
+            name = "kitti"
         elif cat == "indoor":
-            family = "3dlomatch" if "3dlomatch" in str(entry.get("dataset", "")).lower() else "3dmatch"
-            voxel = INDOOR_VOXEL
+            name = "3dlomatch" if "3dlomatch" in str(entry.get("dataset", "")).lower() else "3dmatch"
         else:
             raise InputError(f"pair {entry['id']!r}: unknown category {cat!r}; expected one of {CATEGORIES}")
-        return {"family": family, "voxel_size": voxel, **_thresholds(family)}
+        fam = family(name)
+        return {"family": name, "voxel_size": fam.voxel_size, **fam.thresholds()}
 
     def load(self, index: int) -> Pair:
         entries = self._index()

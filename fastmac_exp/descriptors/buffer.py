@@ -59,6 +59,7 @@ from fastmac_exp.descriptors.onnx_descriptor import (
     voxel_down,
 )
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import FAMILIES
 from fastmac_exp.types import Correspondences, Pair
 
 log = logging.getLogger(__name__)
@@ -68,7 +69,6 @@ SHIPPED = {
     "3dmatch": "descriptors/buffer_3dmatch_desc.onnx",
     "kitti": "descriptors/buffer_kitti_desc.onnx",
 }
-FAMILY_MODEL = {"3dmatch": "3dmatch", "3dlomatch": "3dmatch", "kitti": "kitti"}
 REF_INPUTS = (
     ("normals", "tensor(float)", 2),
     ("points0", "tensor(float)", 2),
@@ -546,11 +546,11 @@ class BufferDescriptor:
     def model_for(self, family: str) -> BufferModel:
         if self.model != "auto":
             return self.load(self.model)
-        if family not in FAMILY_MODEL:
+        if family not in FAMILIES:
             raise InputError(
                 f"descriptor=buffer: no BUFFER model for family {family!r}; set descriptor.model"
             )
-        return self.load(FAMILY_MODEL[family])
+        return self.load(FAMILIES[family].buffer_model)
 
     # -- description
 

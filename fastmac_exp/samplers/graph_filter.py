@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from fastmac_exp.errors import InputError
+from fastmac_exp.families import family as family_record
 from fastmac_exp.graph import GraphSignals, compute_signals
 from fastmac_exp.params import GraphParams
 from fastmac_exp.samplers.base import Sampler, minmax
@@ -65,5 +66,5 @@ class GraphFilterSampler(Sampler):
             r = r**2
         norm = self.normalize
         if norm == "auto":
-            norm = "none" if family == "kitti" else "minmax"
+            norm = family_record(family).sampler_normalize
         return minmax(r) if norm == "minmax" else r

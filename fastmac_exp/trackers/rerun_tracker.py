@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from fastmac_exp.families import FAMILIES
 from fastmac_exp.pipeline import PairOutcome
 from fastmac_exp.trackers.base import Tracker
 
@@ -84,7 +85,6 @@ STYLES = (UNLABELLED, INLIER, OUTLIER, CLIQUE, SOURCE, TARGET, BEFORE, ESTIMATE,
 STAGE_BARS = ("sampling", "graph", "cliques", "selection", "pose")
 UP_AXES = {"+x": "RIGHT_HAND_X_UP", "-x": "RIGHT_HAND_X_DOWN", "+y": "RIGHT_HAND_Y_UP",
            "-y": "RIGHT_HAND_Y_DOWN", "+z": "RIGHT_HAND_Z_UP", "-z": "RIGHT_HAND_Z_DOWN"}  # fmt: skip
-FAMILY_UP = {"kitti": "+z", "3dmatch": "-y", "3dlomatch": "-y"}  # LiDAR frames z up; camera frames y down
 UI_POINT_RADIUS = 1.5
 RATIO_KEYS = ("inlier_ratio_in", "inlier_ratio_kept")
 
@@ -133,7 +133,8 @@ def thin_outliers(idx: np.ndarray, labels: np.ndarray | None, max_outliers: int,
 
 def up_axis(pair_family: str | None, up: str | None) -> str | None:
     """The view's up axis: the tracker's `up` when given, else the family's; None: rerun's default."""
-    chosen = up if up is not None else FAMILY_UP.get(str(pair_family))
+    fam = FAMILIES.get(str(pair_family))
+    chosen = up if up is not None else (fam.up_axis if fam is not None else None)
     if chosen is not None and chosen not in UP_AXES:
         raise ValueError(f"tracker.rerun.up must be one of {sorted(UP_AXES)} or null, got {up!r}")
     return chosen
