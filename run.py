@@ -100,6 +100,10 @@ def main(cfg: DictConfig) -> float:
     return float(summary.get("RR", 0.0))
 
 
+def key_value(overrides: list[str], key: str) -> str:
+    return next((o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == key), "N")
+
+
 def check_keys(argv: list[str]) -> str | None:
     """Our message for an override of a key that does not exist (Hydra's suggests adding it with `+`, which
     is never what a typo needs), with the closest existing key; None when the overrides compose."""
@@ -131,6 +135,9 @@ def check_keys(argv: list[str]) -> str | None:
         if not m:
             return None
         key = m.group(1)
+    if key == "dataset.limit":
+        n = key_value(overrides, key)
+        return f"dataset.limit is a run key: write limit={n} (the first N pairs of any dataset)"
     try:
         cfg = composed([o for o in overrides if o.split("=")[0] != key])
     except Exception:  # noqa: BLE001

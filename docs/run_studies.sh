@@ -102,7 +102,7 @@ for study in "${STUDIES[@]}"; do
       # the first $SMALL_N synthetic pairs
       for d in $DATA; do
         [ "$d" = kitti ] && [ "${KITTI_ALL:-0}" != 1 ] && continue  # RR saturated there; slow cliques
-        lim=""; synthetic "$d" && lim="dataset.limit=$SMALL_N"
+        lim=""; synthetic "$d" && lim="limit=$SMALL_N"
         # shellcheck disable=SC2046
         sweep "$OUT/signal_ablation_$d" +experiment=signal_ablation $(data_args "$d") $lim
       done ;;
@@ -122,7 +122,7 @@ for study in "${STUDIES[@]}"; do
       for d in $DATA; do
         [ "$d" = kitti ] && [ "${KITTI_ALL:-0}" != 1 ] && continue  # RR saturated there; slow cliques
         lim=""; descs=fpfh,fcgf_lite,buffer
-        synthetic "$d" && lim="dataset.limit=$SMALL_N" && descs=${DESC_SYNTHETIC:-fpfh,fcgf_lite}
+        synthetic "$d" && lim="limit=$SMALL_N" && descs=${DESC_SYNTHETIC:-fpfh,fcgf_lite}
         # shellcheck disable=SC2046
         sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d") $lim \
           descriptor="$descs" cache.dir="$OUT/_cache_descriptor"
@@ -140,7 +140,7 @@ for study in "${STUDIES[@]}"; do
       # 10-50 samples of 1,000; 100 samples cost ~1 min per pair and are timed by the timing study)
       # shellcheck disable=SC2046
       sweep "$OUT/stochastic_vs_deterministic_kitti" +experiment=stochastic_vs_deterministic \
-        $(data_args kitti) dataset.limit=4 ratio=0.05,0.02,0.01 ;;
+        $(data_args kitti) limit=4 ratio=0.05,0.02,0.01 ;;
     timing)  # Fig. stochastic, left: sampling time against the sample count, both samplers
       echo "[$(date +%T)] python docs/time_samplers.py" | tee -a "$LOG"
       t0=$SECONDS

@@ -26,28 +26,16 @@ from fastmac_exp.results import ResultsLog
 log = logging.getLogger(__name__)
 
 
-def _choice(cfg: DictConfig, group: str, default: str) -> str:
-    """The config group option that was chosen (e.g. 'highpass'), read from the config's `name` key."""
-    node = cfg.get(group)
-    name = node.get("name") if isinstance(node, DictConfig) else None
-    return str(name) if name is not None else default
-
-
 class Components:
     """The instantiated parts of a run (built once per process)."""
 
     def __init__(self, cfg: DictConfig) -> None:
         ds_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
-        self.limit = ds_cfg.pop("limit", None)
-        ds_cfg.pop("name", None)
-        self.dataset = instantiate(ds_cfg)
-        desc_cfg = _strip(cfg.descriptor)
-        graph_key = desc_cfg.pop("graph_key", None)
-        self.descriptor = instantiate(desc_cfg)
-        if graph_key:
-            self.descriptor.graph_key = graph_key
-        self.sampler = instantiate(_strip(cfg.sampler))
-        self.backend = instantiate(_strip(cfg.backend))
+        self.limit = cfg.get("limit")
+        self.dataset = instantiate(cfg.dataset)
+        self.descriptor = instantiate(cfg.descriptor)
+        self.sampler = instantiate(cfg.sampler)
+        self.backend = instantiate(cfg.backend)
         self.cfg = cfg
         cache_cfg = cfg.get("cache") or {}
         self.cache = CorrespondenceCache(cache_cfg.get("dir"), bool(cache_cfg.get("correspondences", False)))
@@ -59,18 +47,17 @@ class Components:
             "version": __version__,
             "seed": int(cfg.seed),
         }
-        self.labels = {
-            "dataset": _choice(cfg, "dataset", getattr(self.dataset, "name", "dataset")),
-            "descriptor": _choice(cfg, "descriptor", getattr(self.descriptor, "name", "descriptor")),
-            "sampler": getattr(self.sampler, "name", _choice(cfg, "sampler", "sampler")),
-            "backend": getattr(self.backend, "name", _choice(cfg, "backend", "backend")),
-        }
+        self.labels = {  # the results rows' labels: what each part calls itself
+            group: str(getattr(part, "name", group))
+            for group, part in (("dataset", self.dataset), ("descriptor", self.descriptor),
+                                ("sampler", self.sampler), ("backend", self.backend))
+        }  # fmt: skip
 
     def names(self) -> list[str]:
         names = list(self.dataset.names())
         if self.limit is not None:
             if int(self.limit) < 1:
-                raise InputError(f"dataset.limit must be >= 1 (null = every pair), got {self.limit}")
+                raise InputError(f"limit must be >= 1 (null = every pair), got {self.limit}")
             names = names[: int(self.limit)]
         return names
 
@@ -83,12 +70,6 @@ def _file_stamps(cfg: dict[str, Any]) -> dict[str, list[float]]:
             st = Path(value).stat()
             stamps[key] = [st.st_size, st.st_mtime]
     return stamps
-
-
-def _strip(node: DictConfig) -> dict[str, Any]:
-    d = OmegaConf.to_container(node, resolve=True)
-    d.pop("name", None)
-    return d
 
 
 def pair_rng(seed: int, index: int) -> np.random.Generator:

@@ -307,15 +307,13 @@ def test_config_and_graph_thresholds():
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from fastmac_exp.experiment import _strip
     from fastmac_exp.params import mac_params_for
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose(config_name="config", overrides=["descriptor=buffer", "descriptor.progress=false"])
-    node = _strip(cfg.descriptor)
-    assert node.pop("graph_key") == "spinnet" and node["model"] == "auto"
-    d = instantiate(node)
-    assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000
+    assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
+    d = instantiate(cfg.descriptor)  # the node as it stands
+    assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
     # spec 2.2: BUFFER's descriptor is a (mini) SpinNet: Gaussian 0.85 indoors, KITTI "any other" 0.999
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85

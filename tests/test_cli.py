@@ -32,8 +32,10 @@ def test_config_value_errors_exit_2_with_our_message(tmp_path):
     out = p.stdout + p.stderr
     assert p.returncode == 2
     assert "family must be one of" in out and "Error in call to target" not in out
-    p = run("dataset.limit=0", tmp=tmp_path)
-    assert p.returncode == 2 and "dataset.limit must be >= 1" in p.stdout + p.stderr
+    p = run("limit=0", tmp=tmp_path)
+    assert p.returncode == 2 and "limit must be >= 1" in p.stdout + p.stderr
+    p = run("dataset.limit=3", tmp=tmp_path)  # where the key used to be: say where it is now
+    assert p.returncode == 2 and "write limit=3" in p.stdout + p.stderr
 
 
 def sweep(*overrides: str, sweep_dir: Path) -> subprocess.CompletedProcess:
@@ -77,7 +79,7 @@ def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
             installed = False
         if installed:
             continue  # the plugin is there: nothing to explain
-        p = sweep(f"hydra/launcher={launcher}", "dataset.limit=1", sweep_dir=tmp_path / launcher)
+        p = sweep(f"hydra/launcher={launcher}", "limit=1", sweep_dir=tmp_path / launcher)
         out = p.stdout + p.stderr
         assert p.returncode == 2, out[-2000:]
         assert f"pip install {package}" in out and "Could not load" not in out
@@ -98,10 +100,10 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
 
 def test_summary_says_when_describe_times_come_from_the_cache(tmp_path):
     cache = f"cache.dir={tmp_path / 'cache'}"
-    first = run("dataset.limit=1", cache, tmp=tmp_path / "a")
+    first = run("limit=1", cache, tmp=tmp_path / "a")
     assert first.returncode == 0, first.stderr[-2000:]
     assert "from the cache" not in first.stdout and "median ms: describe " in first.stdout
-    second = run("dataset.limit=1", cache, tmp=tmp_path / "b")
+    second = run("limit=1", cache, tmp=tmp_path / "b")
     assert second.returncode == 0, second.stderr[-2000:]
     assert "describe (all from the cache: original times)" in second.stdout
 
@@ -116,14 +118,14 @@ def _default_run_dir(tmp: Path) -> str:
 
 def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_leave_none(tmp_path):
     runs = tmp_path / "runs"
-    p = run("sampler=none", "dataset.limit=1", _default_run_dir(runs), tmp=tmp_path)
+    p = run("sampler=none", "limit=1", _default_run_dir(runs), tmp=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     (made,) = runs.iterdir()
     assert made.name.endswith("_synthetic_fpfh_none_1.0"), made.name
     # a config error and a resume= run leave no directory of their own
     bad = run("dataset.family=kiti", _default_run_dir(runs), tmp=tmp_path)
     assert bad.returncode == 2
-    again = run("sampler=none", "dataset.limit=1", f"resume={made}", _default_run_dir(runs), tmp=tmp_path)
+    again = run("sampler=none", "limit=1", f"resume={made}", _default_run_dir(runs), tmp=tmp_path)
     assert again.returncode == 0, again.stderr[-2000:]
     assert [d.name for d in runs.iterdir()] == [made.name]
     assert list(made.glob("run.resumed-*.log"))  # the resumed run's log went with its results
@@ -139,7 +141,7 @@ def test_a_key_typo_gets_the_closest_key_not_a_plus_suggestion(tmp_path):
 
 def test_parallel_sweep_members_print_whole_summaries(tmp_path):
     """Two joblib workers share the console: every summary block arrives in one piece."""
-    p = sweep("hydra/launcher=local", "sampler=highpass,random", "dataset.limit=1", sweep_dir=tmp_path)
+    p = sweep("hydra/launcher=local", "sampler=highpass,random", "limit=1", sweep_dir=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     lines = p.stdout.splitlines()
     starts = [i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic descriptor=fpfh")]

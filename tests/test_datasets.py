@@ -549,10 +549,10 @@ def test_dataset_configs_instantiate(config, cls, extra):
     node = OmegaConf.load(CONF / "dataset" / f"{config}.yaml")
     cfg = OmegaConf.create({"descriptor": {"graph_key": "fcgf"}, "dataset": node})
     ds_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
-    assert ds_cfg.pop("limit") is None and "root" in ds_cfg or config == "pairs"
+    assert "limit" not in ds_cfg and ("root" in ds_cfg or config == "pairs")  # limit is a run key
     for k, v in extra.items():
         assert ds_cfg[k] == v, k
-    ds = instantiate(ds_cfg)
+    ds = instantiate(cfg.dataset)  # the node as it stands, as the experiment builds it
     assert isinstance(ds, cls)
 
 
@@ -566,9 +566,11 @@ def test_precomputed_config_and_run_config_error():
         cfg = compose(
             "config", overrides=["dataset=3dmatch", "descriptor=precomputed", "descriptor.graph_key=fcgf"]
         )
-    ds_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
-    ds_cfg.pop("limit")
-    ds = instantiate(ds_cfg)
-    assert ds.descriptor == "fcgf"
+    from fastmac_exp.experiment import Components
+
+    parts = Components(cfg)  # the experiment's own builder: every node instantiated untouched
+    ds = parts.dataset
+    assert ds.descriptor == "fcgf" and parts.descriptor.graph_key == "fcgf"
+    assert isinstance(parts.descriptor, PrecomputedDescriptor)
     with pytest.raises(InputError, match=r"dataset\.root is not set(.|\n)*dataload_fcgf\.txt"):
         ds.names()

@@ -39,7 +39,7 @@ def test_library_register_on_correspondences():
 
 def _cfg(tmp_path, **over):
     base = {
-        "dataset": {"_target_": "tests.conftest.ListDataset", "num_pairs": 4, "limit": None},
+        "dataset": {"_target_": "tests.conftest.ListDataset", "num_pairs": 4},
         "descriptor": {"_target_": "fastmac_exp.descriptors.precomputed.PrecomputedDescriptor"},
         "sampler": {"_target_": "fastmac_exp.samplers.GraphFilterSampler", "impl": "python"},
         "backend": {"_target_": "fastmac_exp.backends.python_mac.PythonBackend"},

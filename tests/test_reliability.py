@@ -75,7 +75,7 @@ class Slow(conftest.ListDataset):
         return super().load(i)
 conftest.Slow = Slow
 cfg = OmegaConf.create({{
-    "dataset": {{"_target_": "tests.conftest.Slow", "num_pairs": 12, "n": 200, "limit": None}},
+    "dataset": {{"_target_": "tests.conftest.Slow", "num_pairs": 12, "n": 200}},
     "descriptor": {{"_target_": "fastmac_exp.descriptors.precomputed.PrecomputedDescriptor"}},
     "sampler": {{"_target_": "fastmac_exp.samplers.RandomSampler"}},
     "backend": {{"_target_": "fastmac_exp.backends.python_mac.PythonBackend"}},
@@ -135,7 +135,7 @@ class EasyThenHard(conftest.ListDataset):
         return Pair(name="hard", gt=np.eye(4), correspondences=Correspondences(src, tgt), family="kitti")
 conftest.EasyThenHard = EasyThenHard
 cfg = OmegaConf.create({{
-    "dataset": {{"_target_": "tests.conftest.EasyThenHard", "num_pairs": 2, "n": 200, "limit": None}},
+    "dataset": {{"_target_": "tests.conftest.EasyThenHard", "num_pairs": 2, "n": 200}},
     "descriptor": {{"_target_": "fastmac_exp.descriptors.precomputed.PrecomputedDescriptor"}},
     "sampler": {{"_target_": "fastmac_exp.samplers.NoSampler"}},
     "backend": {{"_target_": "fastmac_exp.backends.cpp.CppBackend"}},

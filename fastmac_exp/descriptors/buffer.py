@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features
 from fastmac_exp.descriptors.onnx_descriptor import (
     clean_points,
@@ -459,7 +460,7 @@ class BufferModel:
 # the front end
 
 
-class BufferDescriptor:
+class BufferDescriptor(FeatureDescriptor):
     """BUFFER's published descriptor (Ref axis + cylindrical patch network) through onnxruntime.
 
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti),
@@ -477,7 +478,7 @@ class BufferDescriptor:
     """
 
     name = "buffer"
-    graph_key = "spinnet"
+    default_graph_key = "spinnet"
 
     def __init__(
         self,
@@ -494,7 +495,9 @@ class BufferDescriptor:
         seed: int = 0,
         progress: bool = True,
         axis: str | None = None,
+        graph_key: str | None = None,
     ) -> None:
+        super().__init__(graph_key)
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"buffer voxel_size must be positive or None (the pair's), got {voxel_size}")
         if scale is not None and not scale > 0:
@@ -676,10 +679,11 @@ class BufferDescriptor:
         return correspondences_from_features(_Bound(self, pair.family, scale), pair, rng, match_descriptors)
 
 
-class _Bound:
+class _Bound(FeatureDescriptor):
     """The descriptor as `correspondences_from_features` sees it, with the pair's family and scale."""
 
     def __init__(self, desc: BufferDescriptor, family: str, scale: float) -> None:
+        super().__init__(desc.graph_key)
         self.desc, self.family, self.scale = desc, family, scale
         self.name = desc.name
         self.voxel_size = desc.voxel_size

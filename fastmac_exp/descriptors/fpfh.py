@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
@@ -95,7 +96,7 @@ def match_features(
     return src_idx, nn.astype(np.int64), dist
 
 
-class FPFHDescriptor:
+class FPFHDescriptor(FeatureDescriptor):
     """FPFH correspondences for a pair with clouds; radii are factors of the voxel size.
 
     The defaults reproduce MAC's Python example at voxel 0.05: normals r = 0.1 (30 nn), FPFH r = 0.25
@@ -104,7 +105,7 @@ class FPFHDescriptor:
     """
 
     name = "fpfh"
-    graph_key = "fpfh"
+    default_graph_key = "fpfh"
 
     def __init__(
         self,
@@ -116,7 +117,9 @@ class FPFHDescriptor:
         mutual: bool = False,
         max_correspondences: int = 5000,
         orient_normals: str = "origin",
+        graph_key: str | None = None,
     ) -> None:
+        super().__init__(graph_key)
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"fpfh voxel_size must be positive or None (use the pair's), got {voxel_size}")
         if normal_radius_factor <= 0 or feature_radius_factor <= 0:

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
@@ -308,7 +309,7 @@ def _fixed(d) -> int | None:
     return d if isinstance(d, int) else None
 
 
-class OnnxDescriptor:
+class OnnxDescriptor(FeatureDescriptor):
     """Learned local descriptors from an ONNX model (default: the shipped `descriptors/fcgf_lite.onnx`).
 
     Keypoints are the voxel-downsampled cloud (the pair's voxel size unless `voxel_size` is given),
@@ -324,7 +325,7 @@ class OnnxDescriptor:
     """
 
     name = "fcgf_lite"
-    graph_key = "fcgf"
+    default_graph_key = "fcgf"
 
     def __init__(
         self,
@@ -338,7 +339,9 @@ class OnnxDescriptor:
         threads: int = 1,
         batch_size: int = 8192,
         alias: str | None = None,
+        graph_key: str | None = None,
     ) -> None:
+        super().__init__(graph_key)
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(
                 f"onnx descriptor voxel_size must be positive or None (use the pair's), got {voxel_size}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
@@ -21,7 +22,7 @@ def _gt_error(src: np.ndarray, tgt: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return np.linalg.norm(src @ gt[:3, :3].T + gt[:3, 3] - tgt, axis=1)
 
 
-class OracleDescriptor:
+class OracleDescriptor(Descriptor):
     """`num_correspondences` matches of which exactly round(N * inlier_ratio) are GT inliers.
 
     `noise` is the per-axis sigma (m) of the inliers' Gaussian noise (None: a quarter of the pair's
@@ -30,7 +31,7 @@ class OracleDescriptor:
     """
 
     name = "oracle"
-    graph_key = "fpfh"
+    default_graph_key = "fpfh"
 
     def __init__(
         self,
@@ -38,7 +39,9 @@ class OracleDescriptor:
         inlier_ratio: float = 0.1,
         noise: float | None = None,
         keypoint_voxel: float | None = None,
+        graph_key: str | None = None,
     ) -> None:
+        super().__init__(graph_key)
         if int(num_correspondences) != num_correspondences or num_correspondences < 1:
             raise InputError(f"oracle num_correspondences must be an integer >= 1, got {num_correspondences}")
         if not 0.0 <= float(inlier_ratio) <= 1.0:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
 
-class PrecomputedDescriptor:
+class PrecomputedDescriptor(Descriptor):
     """Returns `pair.correspondences` as loaded (with the file's GT labels).
 
     `graph_key` names the descriptor that produced the correspondences ("fpfh", "fcgf", "spinnet", ...):
@@ -19,11 +20,7 @@ class PrecomputedDescriptor:
     name = "precomputed"
 
     def __init__(self, graph_key: str = "fpfh") -> None:
-        if not isinstance(graph_key, str) or not graph_key:
-            raise InputError(
-                f"precomputed: graph_key must be a descriptor name such as 'fpfh', got {graph_key!r}"
-            )
-        self.graph_key = graph_key
+        super().__init__(graph_key)
 
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
         if pair.correspondences is None:
