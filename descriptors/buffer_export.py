@@ -107,7 +107,7 @@ def load_cloud(path: Path) -> np.ndarray:
 
 def ref_cloud(points: np.ndarray, params: BufferParams, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Upstream's test-time preprocessing: 0.02 m grid, shuffled, 0.035 m grid, shuffled, capped."""
-    from fastmac_exp.descriptors.onnx_descriptor import voxel_down
+    from fastmac_exp.descriptors.patches import voxel_down
 
     rng = np.random.default_rng(seed)
     cloud = voxel_down(points, params.downsample)

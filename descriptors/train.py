@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from fastmac_exp.descriptors.onnx_descriptor import FEATURES, PatchParams, cloud_patches  # noqa: E402
+from fastmac_exp.descriptors.patches import FEATURES, PatchParams, cloud_patches  # noqa: E402
 
 TRAIN_SEED = 1000
 VAL_SEED = 2000

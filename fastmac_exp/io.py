@@ -1,4 +1,5 @@
-"""File readers for benchmark data: point clouds, 4x4 matrices, correspondences, labels, gt.log, KITTI.
+"""File readers: point clouds, 4x4 matrices, correspondences, labels (the benchmark-specific gt.log and
+KITTI files are read in fastmac_exp/datasets/benchmark_files.py).
 
 Every reader raises fastmac_exp.errors.InputError naming the file (and the line, for row-level problems)
 when the file is missing or malformed. Points come back as float64 arrays; numpy files are always read
@@ -8,10 +9,7 @@ Formats (spec section 1.1):
 - correspondences: one per line, `px py pz qx qy qz` (source point first), whitespace-separated, no header;
 - labels: one value per line, 1 = ground-truth inlier, 0 = outlier (float spellings such as `1.0e+00`
   are accepted, as FastMAC writes them with numpy);
-- matrices: four lines of four numbers (row-major, source -> target), or a (4, 4) .npy;
-- 3DMatch gt.log: `i j n` then four lines of a 4x4 T mapping fragment j (source) into fragment i (target);
-- KITTI poses: one line of 12 numbers per frame (row-major 3x4 camera-0 pose in the frame of frame 0);
-- KITTI calib.txt: `KEY: v1 ... v12` lines; `Tr` is the Velodyne -> camera-0 transform.
+- matrices: four lines of four numbers (row-major, source -> target), or a (4, 4) .npy.
 """
 
 from __future__ import annotations
@@ -19,12 +17,11 @@ from __future__ import annotations
 import math
 import warnings
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.transforms import RIGID_TOL, check_rigid, nearest_rigid  # noqa: F401 - re-exported
+from fastmac_exp.transforms import check_rigid
 from fastmac_exp.types import MAX_COORD, Correspondences
 
 CLOUD_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".txt", ".npy", ".bin")
@@ -35,14 +32,14 @@ MATRIX_EXTENSIONS = (".txt", ".npy", ".log", ".mat", "")
 # helpers
 
 
-def _loadtxt(p: Path, **kw) -> np.ndarray:
+def loadtxt(p: Path, **kw) -> np.ndarray:
     """np.loadtxt without the empty-file warning (an empty file gives an empty array)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return np.loadtxt(p, dtype=np.float64, **kw)
 
 
-def _path(path: str | Path, what: str) -> Path:
+def file_path(path: str | Path, what: str) -> Path:
     p = Path(path).expanduser()
     if not p.exists():
         raise InputError(f"{what} not found: {p}")
@@ -51,7 +48,7 @@ def _path(path: str | Path, what: str) -> Path:
     return p
 
 
-def _lines(p: Path):
+def text_lines(p: Path):
     """(1-based line number, stripped text) of the non-blank lines of a text file."""
     try:
         text = p.read_text(encoding="utf-8", errors="strict")
@@ -63,7 +60,7 @@ def _lines(p: Path):
             yield k, s
 
 
-def _parse_floats(tokens: list[str], p: Path, lineno: int) -> list[float]:
+def parse_floats(tokens: list[str], p: Path, lineno: int) -> list[float]:
     out = []
     for tok in tokens:
         try:
@@ -96,7 +93,7 @@ def check_points(points: np.ndarray, where: str, allow_nonfinite: bool = False) 
 def _read_text_points(p: Path) -> np.ndarray:
     """x y z [extra columns...] per line; '#' comments and blank lines are skipped."""
     try:
-        arr = _loadtxt(p, ndmin=2, comments="#")
+        arr = loadtxt(p, ndmin=2, comments="#")
         if arr.size == 0:
             return np.zeros((0, 3))
         if arr.shape[1] >= 3:
@@ -106,10 +103,10 @@ def _read_text_points(p: Path) -> np.ndarray:
     # slow path: find the offending line
     rows = []
     ncols = None
-    for k, s in _lines(p):
+    for k, s in text_lines(p):
         if s.startswith("#"):
             continue
-        vals = _parse_floats(s.split(), p, k)
+        vals = parse_floats(s.split(), p, k)
         if len(vals) < 3:
             raise InputError(f"{p}, line {k}: expected at least 3 numbers (x y z), got {len(vals)}")
         if ncols is None:
@@ -167,7 +164,7 @@ def read_points(path: str | Path) -> np.ndarray:
     .ply / .pcd via Open3D; .xyz / .txt / .pts as text (first three columns); .npy (N, >=3) float array,
     first three columns; .bin as KITTI Velodyne float32 (N, 4).
     """
-    p = _path(path, "point cloud file")
+    p = file_path(path, "point cloud file")
     ext = p.suffix.lower()
     if ext in (".ply", ".pcd"):
         pts = _read_o3d(p)
@@ -215,7 +212,7 @@ def load_cloud(path: str | Path, drop_zeros: bool = True) -> np.ndarray:
 
 def read_matrix(path: str | Path, rigid: bool = True) -> np.ndarray:
     """A 4x4 matrix from a text file (four lines of four numbers) or a .npy; rigidity-checked by default."""
-    p = _path(path, "matrix file")
+    p = file_path(path, "matrix file")
     if p.suffix.lower() == ".npy":
         m = _read_npy(p)
         if m.shape != (4, 4):
@@ -226,8 +223,8 @@ def read_matrix(path: str | Path, rigid: bool = True) -> np.ndarray:
             raise InputError(f"{p}: expected a numeric array, got dtype {m.dtype}") from None
     else:
         rows = []
-        for k, s in _lines(p):
-            vals = _parse_floats(s.split(), p, k)
+        for k, s in text_lines(p):
+            vals = parse_floats(s.split(), p, k)
             if len(vals) != 4:
                 raise InputError(
                     f"{p}, line {k}: expected 4 numbers (a row of a 4x4 matrix), got {len(vals)}"
@@ -246,11 +243,11 @@ def read_matrix(path: str | Path, rigid: bool = True) -> np.ndarray:
 def _scan_corr(p: Path) -> np.ndarray:
     """Line-by-line parse that names the first bad line (wrong column count, non-numeric, NaN/inf, absurd)."""
     rows = []
-    for k, s in _lines(p):
+    for k, s in text_lines(p):
         toks = s.split()
         if len(toks) != 6:
             raise InputError(f"{p}, line {k}: expected 6 numbers (px py pz qx qy qz), got {len(toks)}")
-        vals = _parse_floats(toks, p, k)
+        vals = parse_floats(toks, p, k)
         if not all(math.isfinite(v) for v in vals):
             raise InputError(f"{p}, line {k}: NaN or inf in {s!r}")
         if any(abs(v) > MAX_COORD for v in vals):
@@ -263,9 +260,9 @@ def _scan_corr(p: Path) -> np.ndarray:
 
 def read_correspondence_array(path: str | Path) -> np.ndarray:
     """The (N, 6) float64 array of a correspondence text file, validated row by row."""
-    p = _path(path, "correspondence file")
+    p = file_path(path, "correspondence file")
     try:
-        arr = _loadtxt(p, ndmin=2, comments=None)
+        arr = loadtxt(p, ndmin=2, comments=None)
         ok = (
             (arr.size == 0 or arr.shape[1] == 6)
             and np.isfinite(arr).all()
@@ -280,19 +277,19 @@ def read_correspondence_array(path: str | Path) -> np.ndarray:
 
 def read_labels(path: str | Path, n: int | None = None) -> np.ndarray:
     """A (N,) bool array from a 0/1-per-line file; `n` checks the count against the correspondences."""
-    p = _path(path, "label file")
+    p = file_path(path, "label file")
     try:
-        vals = _loadtxt(p, ndmin=1, comments=None)
+        vals = loadtxt(p, ndmin=1, comments=None)
         ok = vals.ndim == 1 and np.isin(vals, (0.0, 1.0)).all()
     except ValueError:
         ok = False
     if not ok:
         out = []
-        for k, s in _lines(p):
+        for k, s in text_lines(p):
             toks = s.split()
             if len(toks) != 1:
                 raise InputError(f"{p}, line {k}: expected one label (0 or 1), got {len(toks)} values")
-            v = _parse_floats(toks, p, k)[0]
+            v = parse_floats(toks, p, k)[0]
             if v not in (0.0, 1.0):
                 raise InputError(f"{p}, line {k}: label {toks[0]!r} is not 0 or 1")
             out.append(v)
@@ -308,126 +305,3 @@ def read_correspondences(path: str | Path, labels_path: str | Path | None = None
     arr = read_correspondence_array(path)
     labels = read_labels(labels_path, len(arr)) if labels_path is not None else None
     return Correspondences(src=arr[:, :3], tgt=arr[:, 3:], labels=labels)
-
-
-# ----------------------------------------------------------------------------------------------------------
-# 3DMatch gt.log
-
-
-class GtLogEntry(NamedTuple):
-    i: int  # target fragment
-    j: int  # source fragment
-    n: int  # fragment count of the scene
-    T: np.ndarray  # 4x4, maps fragment j into fragment i
-    line: int  # 1-based line of the entry header
-
-
-def read_gt_log_entries(path: str | Path, rigid: bool = True) -> list[GtLogEntry]:
-    """The entries of a 3DMatch gt.log with their line numbers; `rigid=False` defers the rigidity check
-    (to `check_rigid`) so that one bad matrix fails only its own pair."""
-    p = _path(path, "gt.log")
-    lines = list(_lines(p))
-    if len(lines) % 5:
-        raise InputError(
-            f"{p}: {len(lines)} non-blank lines, not a multiple of 5 "
-            "(each entry is a line 'i j n' then 4 matrix rows)"
-        )
-    out = []
-    for e in range(0, len(lines), 5):
-        k, s = lines[e]
-        head = s.split()
-        if len(head) != 3 or not all(h.lstrip("-").isdigit() for h in head):
-            raise InputError(f"{p}, line {k}: expected an entry header 'i j n' (three integers), got {s!r}")
-        i, j, n = (int(h) for h in head)
-        rows = []
-        for k2, s2 in lines[e + 1 : e + 5]:
-            vals = _parse_floats(s2.split(), p, k2)
-            if len(vals) != 4:
-                raise InputError(
-                    f"{p}, line {k2}: expected 4 numbers (a row of a 4x4 matrix), got {len(vals)}"
-                )
-            rows.append(vals)
-        t = np.asarray(rows, dtype=np.float64)
-        if rigid:
-            t = check_rigid(t, gt_log_where(p, i, j, n, k))
-        out.append(GtLogEntry(i, j, n, t, k))
-    return out
-
-
-def gt_log_where(path: str | Path, i: int, j: int, n: int, line: int) -> str:
-    return f"{path}, entry '{i} {j} {n}' (line {line})"
-
-
-def read_gt_log(path: str | Path) -> list[tuple[int, int, int, np.ndarray]]:
-    """Entries (i, j, n_fragments, T) of a 3DMatch gt.log, rigidity-checked.
-
-    T maps fragment j (the source) into fragment i (the target).
-    """
-    return [(e.i, e.j, e.n, e.T) for e in read_gt_log_entries(path)]
-
-
-# ----------------------------------------------------------------------------------------------------------
-# KITTI odometry
-
-
-def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """(M, 4, 4) camera-0 poses from a KITTI poses/<seq>.txt (12 numbers a line); frame k is row k."""
-    p = _path(path, "KITTI poses file")
-    try:
-        arr = _loadtxt(p, ndmin=2, comments=None)
-        ok = arr.shape[1] == 12 and np.isfinite(arr).all()
-    except ValueError:
-        ok = False
-    if not ok:
-        rows = []
-        for k, s in _lines(p):
-            vals = _parse_floats(s.split(), p, k)
-            if len(vals) != 12:
-                raise InputError(f"{p}, line {k}: expected 12 numbers (a 3x4 pose), got {len(vals)}")
-            if not all(math.isfinite(v) for v in vals):
-                raise InputError(f"{p}, line {k}: NaN or inf")
-            rows.append(vals)
-        arr = np.asarray(rows, dtype=np.float64).reshape(-1, 12)
-    poses = np.tile(np.eye(4), (len(arr), 1, 1))
-    poses[:, :3, :] = arr.reshape(-1, 3, 4)
-    r = poses[:, :3, :3]
-    dev = np.abs(np.einsum("nji,njk->nik", r, r) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(r) if len(r) else np.zeros(0)
-    bad = (dev > RIGID_TOL) | (det <= 0)
-    if bad.any():
-        f = int(np.flatnonzero(bad)[0])
-        raise InputError(
-            f"{p}, line {f + 1} (frame {f}): the pose's 3x3 block is not a rotation (dev {dev[f]:.2e})"
-        )
-    return poses
-
-
-def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
-    """`KEY: numbers` lines of a KITTI calib.txt, as flat float64 arrays keyed by KEY."""
-    p = _path(path, "KITTI calib file")
-    out = {}
-    for k, s in _lines(p):
-        if ":" not in s:
-            raise InputError(f"{p}, line {k}: expected 'KEY: v1 v2 ...', got {s!r}")
-        key, rest = s.split(":", 1)
-        out[key.strip()] = np.asarray(_parse_floats(rest.split(), p, k), dtype=np.float64)
-    return out
-
-
-def read_kitti_velo_to_cam(path: str | Path) -> np.ndarray:
-    """The 4x4 Velodyne -> camera-0 transform `Tr` of a KITTI calib.txt (key `Tr` or `Tr_velo_to_cam`)."""
-    calib = read_kitti_calib(path)
-    for key in ("Tr", "Tr_velo_to_cam", "Tr_velo_cam"):
-        if key in calib:
-            v = calib[key]
-            if v.size != 12:
-                raise InputError(f"{path}: '{key}' has {v.size} numbers, expected 12 (a 3x4 matrix)")
-            t = np.eye(4)
-            t[:3, :] = v.reshape(3, 4)
-            return check_rigid(t, f"{path}: {key}")
-    raise InputError(f"{path}: no 'Tr:' line (Velodyne -> camera 0); keys present: {sorted(calib)}")
-
-
-def kitti_velo_gt(p_src: np.ndarray, p_tgt: np.ndarray, tr: np.ndarray) -> np.ndarray:
-    """Source -> target transform in the Velodyne frame: inv(Tr) inv(P_tgt) P_src Tr."""
-    return np.linalg.inv(tr) @ np.linalg.inv(p_tgt) @ p_src @ tr

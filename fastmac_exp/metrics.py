@@ -29,6 +29,7 @@ def pose_errors(pose: np.ndarray, gt: np.ndarray, re_max_deg: float, te_max_m: f
 
 
 STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
+MAC_STAGES = STAGES[1:-1]  # what `total` sums: sampling and MAC's four stages
 
 
 def summarize(table: pd.DataFrame) -> dict:

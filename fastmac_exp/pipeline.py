@@ -1,4 +1,4 @@
-"""One pair through the whole flow: describe -> sample -> MAC -> metrics (DESIGN.md, the flow of one pair)."""
+"""One pair through the whole flow: describe -> sample -> MAC -> metrics."""
 
 from __future__ import annotations
 

@@ -23,7 +23,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-PROFILE_STAGES = ("sampling", "graph", "cliques", "selection", "pose")
+from fastmac_exp.metrics import MAC_STAGES  # noqa: E402
+
+PROFILE_STAGES = MAC_STAGES
 STAGE_NAMES = {"sampling": "Sampling", "graph": "GC", "cliques": "MCS", "selection": "NCS", "pose": "PE"}
 STAGE_COLORS = {"sampling": "#4c72b0", "graph": "#dd8452", "cliques": "#55a868", "selection": "#c44e52",
                 "pose": "#8172b3"}  # fmt: skip

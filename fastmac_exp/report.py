@@ -22,13 +22,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fastmac_exp.metrics import cached_rows
+from fastmac_exp.metrics import STAGES, cached_rows
 from fastmac_exp.results import LOG_NAME, load_table, read_rows, to_table
 
 log = logging.getLogger(__name__)
 
 GROUP_KEYS = ("dataset", "descriptor", "sampler", "ratio", "backend", "protocol")
-STAGES = ("sampling", "graph", "cliques", "selection", "pose", "total", "describe")
+# the tables' column order: MAC's stages, their total, then describe (which the total leaves out)
+REPORT_STAGES = (*STAGES[1:], STAGES[0])
 STAGE_LABELS = {  # the paper's names for the MAC stages
     "sampling": "Sampling",
     "graph": "GC",
@@ -113,7 +114,13 @@ def aggregate(table: pd.DataFrame) -> pd.DataFrame:
             t[k] = pd.to_numeric(t[k], errors="coerce").astype(float)
         else:
             t[k] = t[k].astype(object).where(t[k].notna(), "").astype(str)
-    for c in ("re_deg", "te_cm", "inlier_ratio_in", "inlier_ratio_kept", *(f"t_{s}_ms" for s in STAGES)):
+    for c in (
+        "re_deg",
+        "te_cm",
+        "inlier_ratio_in",
+        "inlier_ratio_kept",
+        *(f"t_{s}_ms" for s in REPORT_STAGES),
+    ):
         if c in t:
             t[c] = pd.to_numeric(t[c], errors="coerce").astype(float)
     rows = []
@@ -132,7 +139,7 @@ def aggregate(table: pd.DataFrame) -> pd.DataFrame:
         )
         for c in ("inlier_ratio_in", "inlier_ratio_kept"):
             row[c] = float(g[c].mean()) if c in g else math.nan
-        for s in STAGES:
+        for s in REPORT_STAGES:
             c = f"t_{s}_ms"
             row[c] = float(g[c].median()) if c in g and g[c].notna().any() else math.nan
         seeds = g["seed"].dropna().unique() if "seed" in g else []
@@ -270,7 +277,7 @@ def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Pat
         lines.append(
             markdown_table(header, rows, ["l"] * len(row_keys) + ["r"] * (len(header) - len(row_keys)))
         )
-        stages = [s for s in STAGES if f"t_{s}_ms" in g and g[f"t_{s}_ms"].notna().any()]
+        stages = [s for s in REPORT_STAGES if f"t_{s}_ms" in g and g[f"t_{s}_ms"].notna().any()]
         if stages:
             lines += ["", "### Time profile (median ms per pair)", ""]
             header = row_keys + [STAGE_LABELS[s] for s in stages]

@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 LOG_NAME = "results.jsonl"
 
-# The columns of DESIGN.md's results row, in display order; rows may carry more.
+# The results row's columns in display order (the design's data model); rows may carry more.
 COLUMNS = [
     "index", "dataset", "pair", "scene", "family", "descriptor", "sampler", "ratio", "backend", "seed",
     "protocol", "resolution", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from fastmac_exp.errors import InputError
@@ -48,6 +50,14 @@ def translation_error_m(t_est: np.ndarray, t_gt: np.ndarray) -> float:
     return float(np.linalg.norm(t_est - t_gt))
 
 
+def rotation_deviation(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """max |R^T R - I| and det R of one (3, 3) or a stack (N, 3, 3) of candidate rotations."""
+    r = np.asarray(r, dtype=np.float64)
+    dev = np.abs(np.swapaxes(r, -1, -2) @ r - np.eye(3)).max(axis=(-2, -1))
+    det = np.linalg.det(r) if r.size else np.zeros(r.shape[:-2])
+    return dev, det
+
+
 def check_rigid(t: np.ndarray, where: str, tol: float = RIGID_TOL) -> np.ndarray:
     """Return t as float64 (4, 4) if rigid: R orthonormal, det +1, last row 0 0 0 1 (all to `tol`)."""
     t = np.asarray(t, dtype=np.float64)
@@ -57,9 +67,7 @@ def check_rigid(t: np.ndarray, where: str, tol: float = RIGID_TOL) -> np.ndarray
         raise InputError(f"{where}: the matrix has NaN or inf entries")
     if np.abs(t[3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
         raise InputError(f"{where}: the last row must be 0 0 0 1, got {t[3].tolist()}")
-    r = t[:3, :3]
-    dev = float(np.abs(r.T @ r - np.eye(3)).max())
-    det = float(np.linalg.det(r))
+    dev, det = (float(v) for v in rotation_deviation(t[:3, :3]))
     if dev > tol or det <= 0:
         raise InputError(
             f"{where}: the 3x3 block is not a rotation (max |R^T R - I| = {dev:.2e}, det = {det:.6f}; "
@@ -86,10 +94,18 @@ def nearest_rigid(t: np.ndarray) -> np.ndarray:
     return t
 
 
-def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> np.ndarray:
-    """A rotation about a uniformly random axis by an angle uniform in [0, max_angle_deg]."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = np.radians(rng.uniform(0, max_angle_deg))
+def rot_axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: the rotation by `angle` (radians) about `axis` (any length)."""
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> np.ndarray:
+    """A rotation about a uniformly random axis by an angle uniform in [0, max_angle_deg] (the identity,
+    with no draw, when max_angle_deg <= 0)."""
+    if max_angle_deg <= 0:
+        return np.eye(3)
+    axis = rng.normal(size=3)
+    return rot_axis_angle(axis, math.radians(rng.uniform(0.0, max_angle_deg)))

@@ -28,7 +28,8 @@ from fastmac_exp.descriptors.buffer import (
     group_cells,
     ref_inputs,
 )
-from fastmac_exp.descriptors.onnx_descriptor import repo_root, voxel_down
+from fastmac_exp.descriptors.onnx_descriptor import repo_root
+from fastmac_exp.descriptors.patches import voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fastmac_exp import io
+from fastmac_exp import io, transforms
+from fastmac_exp.datasets import benchmark_files as bf
 from fastmac_exp.errors import InputError
 from fastmac_exp.transforms import random_rotation
 
@@ -127,13 +128,13 @@ def test_rigidity_check_names_file(tmp_path, mutate, message):
 
 
 def test_rigidity_tolerance_accepts_3dmatch_precision(tmp_path):
-    # gt.log matrices deviate from orthonormal by up to ~5e-4 (see io.RIGID_TOL); they must pass
+    # gt.log matrices deviate from orthonormal by up to ~5e-4 (see transforms.RIGID_TOL); they must pass
     t = _rigid(4)
     t[:3, :3] *= 1 + 2e-4
-    io.check_rigid(t, "x")
+    transforms.check_rigid(t, "x")
     t[:3, :3] *= 1 + 2e-3
     with pytest.raises(InputError):
-        io.check_rigid(t, "x")
+        transforms.check_rigid(t, "x")
 
 
 def test_read_matrix_shape_errors(tmp_path):
@@ -215,11 +216,11 @@ def write_gt_log(path, entries, n=10):
 def test_read_gt_log(tmp_path):
     ents = [(0, 1, _rigid(5)), (2, 7, _rigid(6))]
     write_gt_log(tmp_path / "gt.log", ents)
-    got = io.read_gt_log(tmp_path / "gt.log")
+    got = bf.read_gt_log(tmp_path / "gt.log")
     assert [(i, j, n) for i, j, n, _ in got] == [(0, 1, 10), (2, 7, 10)]
     for (_, _, t), (_, _, _, g) in zip(ents, got):
         np.testing.assert_allclose(g, t, atol=1e-7)
-    assert [e.line for e in io.read_gt_log_entries(tmp_path / "gt.log")] == [1, 6]
+    assert [e.line for e in bf.read_gt_log_entries(tmp_path / "gt.log")] == [1, 6]
 
 
 def test_gt_log_errors(tmp_path):
@@ -227,14 +228,14 @@ def test_gt_log_errors(tmp_path):
     bad[:3, :3] *= 1.1
     write_gt_log(tmp_path / "gt.log", [(0, 1, _rigid(5)), (0, 2, bad)])
     with pytest.raises(InputError, match=r"gt\.log, entry '0 2 10' \(line 6\).*not a rotation"):
-        io.read_gt_log(tmp_path / "gt.log")
-    assert len(io.read_gt_log_entries(tmp_path / "gt.log", rigid=False)) == 2
+        bf.read_gt_log(tmp_path / "gt.log")
+    assert len(bf.read_gt_log_entries(tmp_path / "gt.log", rigid=False)) == 2
     (tmp_path / "short.log").write_text("0 1 3\n1 0 0 0\n0 1 0 0\n0 0 1 0\n")
     with pytest.raises(InputError, match="not a multiple of 5"):
-        io.read_gt_log(tmp_path / "short.log")
+        bf.read_gt_log(tmp_path / "short.log")
     (tmp_path / "head.log").write_text("0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     with pytest.raises(InputError, match=r"head\.log, line 1: expected an entry header"):
-        io.read_gt_log(tmp_path / "head.log")
+        bf.read_gt_log(tmp_path / "head.log")
 
 
 # -------------------------------------------------------------------------------------------- KITTI
@@ -243,28 +244,28 @@ def test_gt_log_errors(tmp_path):
 def test_kitti_poses_calib_and_velodyne_gt(tmp_path):
     poses = np.stack([_rigid(10 + k) for k in range(5)])
     np.savetxt(tmp_path / "00.txt", poses[:, :3, :].reshape(5, 12), fmt="%.12e")
-    np.testing.assert_allclose(io.read_kitti_poses(tmp_path / "00.txt"), poses, atol=1e-11)
+    np.testing.assert_allclose(bf.read_kitti_poses(tmp_path / "00.txt"), poses, atol=1e-11)
     tr = _rigid(20)
     calib = "P0: " + " ".join(["0"] * 12) + "\nTr: " + " ".join(f"{v:.12e}" for v in tr[:3].ravel()) + "\n"
     (tmp_path / "calib.txt").write_text(calib)
-    np.testing.assert_allclose(io.read_kitti_velo_to_cam(tmp_path / "calib.txt"), tr, atol=1e-11)
+    np.testing.assert_allclose(bf.read_kitti_velo_to_cam(tmp_path / "calib.txt"), tr, atol=1e-11)
     # GT maps source Velodyne points into the target Velodyne frame: same world point both ways
     p_velo_src = np.array([1.0, 2.0, 3.0, 1.0])
     world = poses[3] @ tr @ p_velo_src
     p_velo_tgt = np.linalg.inv(poses[1] @ tr) @ world
-    np.testing.assert_allclose(io.kitti_velo_gt(poses[3], poses[1], tr) @ p_velo_src, p_velo_tgt, atol=1e-9)
+    np.testing.assert_allclose(bf.kitti_velo_gt(poses[3], poses[1], tr) @ p_velo_src, p_velo_tgt, atol=1e-9)
 
 
 def test_kitti_errors(tmp_path):
     (tmp_path / "p.txt").write_text(" ".join(["1"] * 12) + "\n" + " ".join(["0"] * 11) + "\n")
     with pytest.raises(InputError, match=r"p\.txt, line 2: expected 12 numbers"):
-        io.read_kitti_poses(tmp_path / "p.txt")
+        bf.read_kitti_poses(tmp_path / "p.txt")
     (tmp_path / "q.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 0 0 1 0 0 0 0 1 0\n")
     with pytest.raises(InputError, match=r"q\.txt, line 2 \(frame 1\).*not a rotation"):
-        io.read_kitti_poses(tmp_path / "q.txt")
+        bf.read_kitti_poses(tmp_path / "q.txt")
     (tmp_path / "calib.txt").write_text("P0: 1 2 3\n")
     with pytest.raises(InputError, match="no 'Tr:' line"):
-        io.read_kitti_velo_to_cam(tmp_path / "calib.txt")
+        bf.read_kitti_velo_to_cam(tmp_path / "calib.txt")
     (tmp_path / "calib2.txt").write_text("garbage line\n")
     with pytest.raises(InputError, match=r"calib2\.txt, line 1"):
-        io.read_kitti_calib(tmp_path / "calib2.txt")
+        bf.read_kitti_calib(tmp_path / "calib2.txt")

@@ -9,15 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fastmac_exp.descriptors.onnx_descriptor import (
-    DEFAULT_MODEL,
-    OnnxDescriptor,
-    PatchParams,
-    extract_patches,
-    repo_root,
-    support_clouds,
-    voxel_down,
-)
+from fastmac_exp.descriptors.onnx_descriptor import DEFAULT_MODEL, OnnxDescriptor, repo_root
+from fastmac_exp.descriptors.patches import PatchParams, extract_patches, support_clouds, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fastmac_exp import io
 from fastmac_exp.datasets.user_pairs import SharedRealPairs, UserPairs
 from fastmac_exp.metrics import pose_errors
+from fastmac_exp.transforms import nearest_rigid
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HAVE_DATA = (SHARED / "pairs.json").is_file()
@@ -106,9 +106,9 @@ def test_project_metrics_on_a_real_gt(shared_ds):
     is 0.58 deg from every rotation), and a TE of 1.5 x the threshold fails."""
     pair = shared_ds.load(0)
     assert abs(np.linalg.det(pair.gt[:3, :3]) - 1) > 1e-5  # the raw gt.log matrix is off orthonormal
-    e = pose_errors(io.nearest_rigid(pair.gt), pair.gt, pair.re_thresh_deg, pair.te_thresh_m)
+    e = pose_errors(nearest_rigid(pair.gt), pair.gt, pair.re_thresh_deg, pair.te_thresh_m)
     assert e.re_deg < 1e-4 and e.te_cm == 0 and e.success
-    off = io.nearest_rigid(pair.gt)
+    off = nearest_rigid(pair.gt)
     off[:3, 3] += [pair.te_thresh_m * 1.5, 0, 0]
     e = pose_errors(off, pair.gt, pair.re_thresh_deg, pair.te_thresh_m)
     assert e.re_deg < 1e-4 and e.te_cm == pytest.approx(pair.te_thresh_m * 150) and not e.success

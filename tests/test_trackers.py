@@ -16,7 +16,6 @@ from fastmac_exp.samplers import SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
 
 
 def _rot_z(deg: float) -> np.ndarray:

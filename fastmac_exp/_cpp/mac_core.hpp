@@ -29,8 +29,9 @@ struct RegistrationFailed : std::runtime_error {
 Kernel parse_kernel(const std::string &name);  // throws std::invalid_argument
 void check_params(const GraphParams &gp);       // throws std::invalid_argument
 
-// Threads to use: num_threads > 0 is taken as given; 0 means automatic: OpenMP's default, but one
-// thread for small problems (n < kSerialBelow), where starting threads costs more than it saves.
+// Threads to use: num_threads > 0 is taken as given; 0 means automatic: default_threads() (the
+// std::thread pool of parallel.hpp, or OpenMP in a -DFASTMAC_OPENMP=ON build), but one thread for
+// small problems (n < kSerialBelow), where starting threads costs more than it saves.
 constexpr int64_t kSerialBelow = 1500;
 int resolve_threads(int num_threads, int64_t n = -1);
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count

@@ -14,12 +14,13 @@ from fastmac_exp.params import MacParams
 from fastmac_exp.types import Correspondences, RegistrationResult
 
 
-def _result(pose: np.ndarray, n: int, ms: float, inliers: np.ndarray | None = None) -> RegistrationResult:
+def _result(pose: np.ndarray, n: int, ms: float) -> RegistrationResult:
+    """A peer's answer: a pose and its time; peers report no clique."""
     return RegistrationResult(
         pose=pose,
         pose_unrefined=pose,
         kept=np.arange(n),
-        clique=np.flatnonzero(inliers) if inliers is not None else np.zeros(0, np.int64),
+        clique=np.zeros(0, np.int64),
         timings={"graph": 0.0, "cliques": 0.0, "selection": 0.0, "pose": ms},
     )
 

@@ -30,23 +30,23 @@ from pathlib import Path
 
 import numpy as np
 
+from fastmac_exp.datasets.benchmark_files import (
+    GtLogEntry,
+    gt_log_where,
+    kitti_velo_gt,
+    read_gt_log_entries,
+    read_kitti_poses,
+    read_kitti_velo_to_cam,
+)
 from fastmac_exp.datasets.mac_layout import (
     LOMATCH_SUFFIX,
     SCENES_3DMATCH,
 )
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES, check_family, family
-from fastmac_exp.io import (
-    GtLogEntry,
-    check_rigid,
-    gt_log_where,
-    kitti_velo_gt,
-    load_cloud,
-    read_gt_log_entries,
-    read_kitti_poses,
-    read_kitti_velo_to_cam,
-)
+from fastmac_exp.io import load_cloud
 from fastmac_exp.resolution import COMPUTED_FAMILIES, FIXED_RESOLUTION, file_resolution
+from fastmac_exp.transforms import check_rigid
 from fastmac_exp.types import Pair
 
 FRAGMENTS_WHERE = (

@@ -51,14 +51,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.matching import correspondences_from_features
-from fastmac_exp.descriptors.onnx_descriptor import (
-    clean_points,
-    match_descriptors,
-    repo_root,
-    resolve_model_path,
-    voxel_down,
-)
+from fastmac_exp.descriptors.matching import correspondences_from_features, match_descriptors
+from fastmac_exp.descriptors.onnx_descriptor import repo_root, resolve_model_path
+from fastmac_exp.descriptors.patches import clean_points, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 from fastmac_exp.types import Correspondences, Pair

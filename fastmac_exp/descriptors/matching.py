@@ -1,4 +1,5 @@
-"""The part every feature front end shares: describe both clouds, match, cap, label."""
+"""The part every feature front end shares: describe both clouds, match (`match_descriptors` for learned
+unit-length features), cap, label."""
 
 from __future__ import annotations
 
@@ -33,3 +34,34 @@ def correspondences_from_features(
         si, ti, dist = si[keep], ti[keep], dist[keep]
     corr = Correspondences(src=src_kp[si], tgt=tgt_kp[ti], scores=1.0 - dist)
     return pair.label(corr)
+
+
+def match_descriptors(
+    src_feat: np.ndarray, tgt_feat: np.ndarray, mutual: bool = False, chunk: int = 2048
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact nearest target descriptor for every source descriptor (unit vectors: max cosine).
+
+    Returns `(src_idx, tgt_idx, euclidean feature distance)`; `mutual` keeps only pairs that are each
+    other's nearest neighbour. Brute force in chunks (faster than a k-d tree in 32 dimensions).
+    """
+    s = np.ascontiguousarray(src_feat, dtype=np.float32)
+    t = np.ascontiguousarray(tgt_feat, dtype=np.float32)
+
+    def nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.empty(len(a), dtype=np.int64)
+        sim = np.empty(len(a), dtype=np.float32)
+        for i in range(0, len(a), chunk):
+            block = a[i : i + chunk] @ b.T
+            j = np.argmax(block, axis=1)
+            idx[i : i + chunk] = j
+            sim[i : i + chunk] = block[np.arange(len(j)), j]
+        return idx, sim
+
+    nn_idx, sim = nearest(s, t)
+    dist = np.sqrt(np.clip(2.0 - 2.0 * sim.astype(np.float64), 0.0, None))
+    src_idx = np.arange(len(s))
+    if mutual:
+        back, _ = nearest(t, s)
+        keep = back[nn_idx] == src_idx
+        src_idx, nn_idx, dist = src_idx[keep], nn_idx[keep], dist[keep]
+    return src_idx, nn_idx, dist

@@ -52,6 +52,7 @@ import numpy as np
 import pandas as pd
 
 from fastmac_exp.families import FAMILIES
+from fastmac_exp.metrics import MAC_STAGES
 from fastmac_exp.pipeline import PairOutcome
 from fastmac_exp.trackers.base import Tracker
 
@@ -82,7 +83,7 @@ ESTIMATE = Style(7, "source under the estimated pose", (255, 120, 0), "orange")
 GT_POSE = Style(8, "source under the GT pose", (170, 90, 255), "violet")
 STYLES = (UNLABELLED, INLIER, OUTLIER, CLIQUE, SOURCE, TARGET, BEFORE, ESTIMATE, GT_POSE)
 
-STAGE_BARS = ("sampling", "graph", "cliques", "selection", "pose")
+STAGE_BARS = MAC_STAGES
 UP_AXES = {"+x": "RIGHT_HAND_X_UP", "-x": "RIGHT_HAND_X_DOWN", "+y": "RIGHT_HAND_Y_UP",
            "-y": "RIGHT_HAND_Y_DOWN", "+z": "RIGHT_HAND_Z_UP", "-z": "RIGHT_HAND_Z_DOWN"}  # fmt: skip
 UI_POINT_RADIUS = 1.5
