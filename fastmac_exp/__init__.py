@@ -8,9 +8,10 @@ Library use (no Hydra needed):
     result.timings     # ms per stage: describe, sampling, graph, cliques, selection, pose, total
 """
 
+from fastmac_exp.api import register
 from fastmac_exp.errors import BackendUnavailable, FastMacError, InputError, RegistrationFailed
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
-from fastmac_exp.pipeline import register, register_correspondences
+from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 __version__ = "0.1.0"

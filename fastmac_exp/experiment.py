@@ -22,6 +22,7 @@ from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
 from fastmac_exp.results import ResultsLog
+from fastmac_exp.row import PairRow
 
 log = logging.getLogger(__name__)
 
@@ -80,18 +81,11 @@ def pair_rng(seed: int, index: int) -> np.random.Generator:
 def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
     """Run one pair; any exception becomes a failed row with the error message (fault isolation)."""
     cfg = comp.cfg
-    row: dict[str, Any] = {
-        "index": index,
-        "pair": name,
-        **comp.labels,
-        "ratio": float(cfg.ratio),
-        "seed": int(cfg.seed),
-        "protocol": str(cfg.protocol),
-        "error": "",
-    }
+    row = PairRow(index=index, pair=name, **comp.labels, ratio=float(cfg.ratio), seed=int(cfg.seed),
+                  protocol=str(cfg.protocol))  # fmt: skip
     try:
         pair = comp.dataset.load(index)
-        row.update(scene=pair.scene, family=pair.family)
+        row.set(scene=pair.scene, family=pair.family)
         outcome = run_pair(
             pair,
             comp.descriptor,
@@ -110,10 +104,9 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
     except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run
         if cfg.get("fail_fast", False):
             raise
-        row["error"] = f"{type(exc).__name__}: {exc}"
-        row["success"] = False
+        row.set(error=f"{type(exc).__name__}: {exc}", success=False)
         log.debug("pair %s failed:\n%s", name, traceback.format_exc())
-        return PairOutcome(row=row)
+        return PairOutcome(row=row.to_dict())
 
 
 _WORKER: Components | None = None

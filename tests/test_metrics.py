@@ -71,11 +71,10 @@ def _result(refined: np.ndarray, unrefined: np.ndarray) -> RegistrationResult:
 def test_honest_and_reference_protocols(refined, unrefined, honest, reference):
     pair = Pair(name="p", gt=np.eye(4), family="3dmatch")
     for protocol, want in (("honest", honest), ("reference", reference)):
-        row: dict = {}
-        evaluate(row, pair, _result(refined, unrefined), protocol)
-        assert row["success"] is want, protocol
+        verdict = evaluate(pair, _result(refined, unrefined), protocol)
+        assert verdict.success is want, protocol
         # RE/TE are the refined pose's under both protocols (as the reference reports them)
-        assert row["re_deg"] == pytest.approx(pose_errors(refined, np.eye(4), 15, 0.3).re_deg)
+        assert verdict.re_deg == pytest.approx(pose_errors(refined, np.eye(4), 15, 0.3).re_deg)
 
 
 def test_summary_counts_failed_pairs_as_not_registered():

@@ -9,11 +9,12 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
+from fastmac_exp.api import register
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.descriptors.base import Descriptor  # noqa: F401 - interface import must work
 from fastmac_exp.experiment import run_experiment
 from fastmac_exp.params import mac_params_for
-from fastmac_exp.pipeline import register, register_correspondences
+from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.results import COLUMNS, load_table
 from fastmac_exp.samplers import GraphFilterSampler, NoSampler
 from tests.conftest import make_correspondences
@@ -157,3 +158,22 @@ def test_failed_pair_keeps_what_was_measured(tmp_path):
     assert summary["failed"] == 4
     assert (table["n_in"] == 300).all() and table["inlier_ratio_in"].notna().all()
     assert table["error"].str.contains("fewer than the 3").all()
+
+
+def test_pair_row_keeps_what_was_measured_and_leaves_out_the_rest():
+    """A row's dict holds the fields a stage set (None included) and none it did not reach; timings
+    become t_<stage>_ms columns just before the pose; an unknown field is refused."""
+    from fastmac_exp.row import PairRow
+
+    row = PairRow(index=3, pair="p", dataset="d", descriptor="fpfh", sampler="highpass", backend="cpp",
+                  ratio=0.2, seed=0, protocol="honest")  # fmt: skip
+    row.set(scene="s", family="kitti", inliers_in=None)
+    d = row.to_dict()
+    assert d["inliers_in"] is None and "n_kept" not in d and "success" not in d and "pose" not in d
+    assert list(d)[:10] == ["index", "pair", "dataset", "descriptor", "sampler", "backend", "ratio", "seed",
+                            "protocol", "error"]  # fmt: skip
+    row.timings = {"describe": 1.0, "total": 2.0}
+    row.pose = "1 0 0 0"
+    assert list(row.to_dict())[-3:] == ["t_describe_ms", "t_total_ms", "pose"]
+    with pytest.raises(AttributeError, match="no field 'n_kep'"):
+        row.set(n_kep=3)
