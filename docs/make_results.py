@@ -642,10 +642,10 @@ class Results:
         self.add("## 5. Descriptor robustness (paper Fig. desc)", "")
         self.add(
             para("""High-pass sampling at every ratio on FPFH and on two learned descriptors:
-                `fcgf_lite` (descriptors/fcgf_lite.onnx, a small FCGF-style network trained in this
+                `fcgf_lite` (fastmac_exp/models/fcgf_lite.onnx, a small FCGF-style network trained in this
                 project on synthetic scans; not the published FCGF) and, on the real pairs, `buffer`
                 (BUFFER's published 3DMatch and KITTI weights, Ao et al., CVPR 2023, through ONNX
-                Runtime; descriptors/BUFFER_MODEL_CARD.md). Seed 0; the first 12 pairs of the
+                Runtime; training/BUFFER_MODEL_CARD.md). Seed 0; the first 12 pairs of the
                 synthetic indoor families and the real pairs (no KITTI-like run, as in section 3).
                 The correspondences come from a private cache emptied before the study. Paper: the
                 FastMAC README's RR for FPFH and FCGF; the learned descriptors here are compared with
@@ -690,7 +690,7 @@ class Results:
             self.add(
                 figure(line_figure(aggs, "descriptor_robustness.png", title), "descriptor robustness"), ""
             )
-        extra = DOCS / "buffer_real_pairs.md"  # descriptors/evaluate.py --real, written up by hand
+        extra = DOCS / "buffer_real_pairs.md"  # training/evaluate.py --real, written up by hand
         if extra.exists():
             self.add(*[ln for ln in extra.read_text().splitlines() if not ln.startswith("<!--")], "")
 

@@ -21,6 +21,7 @@ from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
+from fastmac_exp.resources import find_file
 from fastmac_exp.results import ResultsLog
 from fastmac_exp.row import PairRow
 
@@ -64,11 +65,13 @@ class Components:
 
 
 def _file_stamps(cfg: dict[str, Any]) -> dict[str, list[float]]:
-    """Size and mtime of every existing file a config names (e.g. descriptor.model)."""
+    """Size and mtime of every existing file a config names (e.g. descriptor.model, found as the
+    descriptors find it: from the cwd, else from the package)."""
     stamps = {}
     for key, value in cfg.items():
-        if isinstance(value, str) and value and Path(value).is_file():
-            st = Path(value).stat()
+        found = find_file(value) if isinstance(value, str) and value else None
+        if found is not None:
+            st = found.stat()
             stamps[key] = [st.st_size, st.st_mtime]
     return stamps
 

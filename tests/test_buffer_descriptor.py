@@ -1,9 +1,9 @@
-"""BUFFER through ONNX (descriptors/BUFFER_MODEL_CARD.md): the published weights load with no missing or
+"""BUFFER through ONNX (training/BUFFER_MODEL_CARD.md): the published weights load with no missing or
 unexpected key, the shipped models compute what a torch forward pass of those weights computes, the numpy
 preprocessing equals brute force, the descriptor is rotation invariant, and the front end plugs in.
 
 Without ../shared the shipped models are still checked against the torch reference's outputs frozen at
-export time (descriptors/buffer_export.json); only the checks that read the .pth files or a real fragment
+export time (training/buffer_export.json); only the checks that read the .pth files or a real fragment
 skip.
 """
 
@@ -14,6 +14,7 @@ import json
 import pickle
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,17 +29,18 @@ from fastmac_exp.descriptors.buffer import (
     group_cells,
     ref_inputs,
 )
-from fastmac_exp.descriptors.onnx_descriptor import repo_root
+from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
 from fastmac_exp.descriptors.patches import voxel_down
 from fastmac_exp.errors import InputError
+from fastmac_exp.resources import MODELS_DIR
 from fastmac_exp.types import Correspondences, Pair
 
 from .test_onnx_descriptor import random_rotation, toy_room
 
-REPO = repo_root()
+REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO.parent / "shared" / "models" / "buffer"
 FRAGMENT = REPO.parent / "shared" / "data" / "teaser_3dmatch_redkitchen" / "cloud_bin_0.ply"
-EXPORT = json.loads((REPO / "descriptors" / "buffer_export.json").read_text())
+EXPORT = json.loads((REPO / "training" / "buffer_export.json").read_text())
 needs_weights = pytest.mark.skipif(
     not (WEIGHTS / "3dmatch" / "Desc_best.pth").is_file(), reason=f"BUFFER weights not at {WEIGHTS}"
 )
@@ -72,23 +74,23 @@ def room() -> np.ndarray:
 
 def test_shipped_models_are_the_recorded_export(desc):
     for fam, rec in EXPORT["families"].items():
-        path = REPO / SHIPPED[fam]
+        path = resolve_model_path(SHIPPED[fam])
         assert path.stat().st_size < 5e6 and sha256(path) == rec["desc_onnx"]["sha256"], fam
         model = desc.load(fam)
         assert model.params == BufferParams(**rec["params"])
         assert (model.ref is not None) == (fam == "3dmatch")
     ref = EXPORT["families"]["3dmatch"]["ref_onnx"]
-    assert sha256(REPO / "descriptors" / ref["file"]) == ref["sha256"]
+    assert sha256(MODELS_DIR / ref["file"]) == ref["sha256"]
     assert desc.load("3dmatch").limits == tuple(EXPORT["families"]["3dmatch"]["neighbor_limits"])
 
 
 def test_shipped_models_reproduce_the_torch_reference_outputs(desc):
     """onnxruntime on fixed inputs == the torch reference's outputs recorded when the .pth was converted."""
-    from descriptors.buffer_export import golden_cloud, golden_grouped
+    from training.buffer_export import golden_cloud, golden_grouped
 
     x = golden_grouped()
     for fam, rec in EXPORT["families"].items():
-        got = session(REPO / SHIPPED[fam]).run(None, {"grouped": x})[0]
+        got = session(resolve_model_path(SHIPPED[fam])).run(None, {"grouped": x})[0]
         want = np.asarray(rec["golden_desc"]["outputs"], dtype=np.float32)
         assert np.abs(got - want).max() < TOL_DESC, fam
         np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
@@ -104,7 +106,7 @@ def test_shipped_models_reproduce_the_torch_reference_outputs(desc):
 def test_published_weights_load_with_no_missing_or_unexpected_key():
     import torch
 
-    from descriptors.buffer_nets import DescReference, RefReference, load_published
+    from training.buffer_nets import DescReference, RefReference, load_published
 
     for fam in ("3dmatch", "kitti"):
         for prefix, cls, n in (("Ref", RefReference, 141), ("Desc", DescReference, 58)):
@@ -121,14 +123,14 @@ def test_published_weights_load_with_no_missing_or_unexpected_key():
 def test_onnx_equals_a_torch_forward_pass_of_the_published_weights(desc):
     import torch
 
-    from descriptors.buffer_export import golden_cloud, golden_grouped, random_grouped, ref_batch_reference
-    from descriptors.buffer_nets import DescReference, RefReference, load_published
+    from training.buffer_export import golden_cloud, golden_grouped, random_grouped, ref_batch_reference
+    from training.buffer_nets import DescReference, RefReference, load_published
 
     for fam in ("3dmatch", "kitti"):
         ref = DescReference()
         load_published(ref, WEIGHTS / fam / "Desc_best.pth", "Desc")
         ref.eval()
-        sess = session(REPO / SHIPPED[fam])
+        sess = session(resolve_model_path(SHIPPED[fam]))
         for x in (golden_grouped(), random_grouped(16, BufferParams(), seed=5)):
             with torch.no_grad():
                 want = ref(torch.from_numpy(x)).numpy()
@@ -148,7 +150,7 @@ def test_onnx_equals_a_torch_forward_pass_of_the_published_weights(desc):
 
 def brute_force_cells(aligned: np.ndarray, params: BufferParams) -> np.ndarray:
     """Upstream's sphere_query + grouping, one cell at a time (pointnet2 ball_query semantics)."""
-    from descriptors.buffer_nets import cell_centres
+    from training.buffer_nets import cell_centres
 
     centres = cell_centres().astype(np.float32)
     r = np.float32(params.delta / params.rad_n)
@@ -280,7 +282,7 @@ def test_contracts_refuse_other_models(tmp_path):
     from onnx import TensorProto, helper
 
     with pytest.raises(InputError, match="not a BUFFER descriptor model"):
-        BufferModel(REPO / "descriptors" / "fcgf_lite.onnx", None, 1)
+        BufferModel(MODELS_DIR / "fcgf_lite.onnx", None, 1)
     x = helper.make_tensor_value_info("grouped", TensorProto.FLOAT, ["M", 100, 3])
     y = helper.make_tensor_value_info("d", TensorProto.FLOAT, ["M", 300])
     graph = helper.make_graph([helper.make_node("Flatten", ["grouped"], ["d"])], "g", [x], [y])

@@ -153,3 +153,17 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
         while lines[j].startswith("failed x"):  # a failed pair's reason, if any
             j += 1
         assert lines[j].startswith("results: ")
+
+
+def test_the_package_finds_its_configs_and_models_without_the_repository_layout(tmp_path):
+    """What a wheel install relies on: configs and models are found through the package (resources.py),
+    and `python -m fastmac_exp` is the same app as run.py (its --help), run from another directory."""
+    from fastmac_exp.descriptors.onnx_descriptor import DEFAULT_MODEL, resolve_model_path
+    from fastmac_exp.resources import MODELS_DIR, PACKAGE_DIR, config_dir
+
+    assert (config_dir() / "config.yaml").is_file()
+    assert resolve_model_path(DEFAULT_MODEL) == MODELS_DIR / "fcgf_lite.onnx"
+    assert MODELS_DIR.parent == PACKAGE_DIR
+    p = subprocess.run([sys.executable, "-m", "fastmac_exp", "--help"], capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)  # fmt: skip
+    assert p.returncode == 0 and "python run.py sampler=highpass ratio=0.05" in p.stdout

@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fastmac_exp.descriptors.onnx_descriptor import DEFAULT_MODEL, OnnxDescriptor, repo_root
+from fastmac_exp.descriptors.onnx_descriptor import DEFAULT_MODEL, OnnxDescriptor, resolve_model_path
 from fastmac_exp.descriptors.patches import PatchParams, extract_patches, support_clouds, voxel_down
 from fastmac_exp.errors import InputError
+from fastmac_exp.resources import MODELS_DIR
 from fastmac_exp.types import Correspondences, Pair
 
-MODEL = repo_root() / DEFAULT_MODEL
+REPO = Path(__file__).resolve().parents[1]
+MODEL = resolve_model_path(DEFAULT_MODEL)
 
 
 def box_surface(rng, lo, hi, spacing: float) -> np.ndarray:
@@ -150,10 +153,10 @@ def test_wrong_patch_size_model(tmp_path):
 
 
 def test_missing_model_path(tmp_path):
-    with pytest.raises(InputError, match="not found.*descriptors.train"):
+    with pytest.raises(InputError, match="not found.*training.train"):
         OnnxDescriptor(str(tmp_path / "nope.onnx"))
     with pytest.raises(InputError, match="not found"):
-        OnnxDescriptor("descriptors/does_not_exist.onnx")
+        OnnxDescriptor("training/does_not_exist.onnx")
 
 
 def test_relative_model_path_from_other_cwd(tmp_path, monkeypatch):
@@ -190,14 +193,14 @@ def test_runtime_path_does_not_import_torch():
         "import sys; from fastmac_exp.descriptors.onnx_descriptor import OnnxDescriptor; "
         "OnnxDescriptor(); assert 'torch' not in sys.modules, 'torch imported'"
     )
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=repo_root())
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
 
 
 def test_config_instantiates():
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    cfg = OmegaConf.to_container(OmegaConf.load(repo_root() / "conf" / "descriptor" / "fcgf_lite.yaml"))
+    cfg = OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "descriptor" / "fcgf_lite.yaml"))
     assert cfg.pop("graph_key") == "fcgf"
     d = instantiate(cfg)
     assert isinstance(d, OnnxDescriptor) and d.graph_key == "fcgf" and d.max_correspondences == 5000
@@ -211,7 +214,7 @@ def test_fcgf_is_a_documented_alias_of_fcgf_lite(caplog):
 
     from fastmac_exp.experiment import Components
 
-    with initialize_config_dir(config_dir=str(repo_root() / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         alias = compose(config_name="config", overrides=["descriptor=fcgf"])
         lite = compose(config_name="config", overrides=["descriptor=fcgf_lite"])
     a, b = OmegaConf.to_container(alias.descriptor), OmegaConf.to_container(lite.descriptor)
@@ -225,7 +228,7 @@ def test_fcgf_is_a_documented_alias_of_fcgf_lite(caplog):
 
 def test_buffer_models_are_refused_here():
     with pytest.raises(InputError, match="descriptor=buffer"):
-        OnnxDescriptor(repo_root() / "descriptors" / "buffer_3dmatch_desc.onnx")
+        OnnxDescriptor(MODELS_DIR / "buffer_3dmatch_desc.onnx")
 
 
 def test_pickles_for_parallel_workers(desc):

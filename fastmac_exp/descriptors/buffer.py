@@ -1,8 +1,8 @@
 """BUFFER's learned descriptor (Ao et al., CVPR 2023) through onnxruntime: `descriptor=buffer`.
 
-The published 3DMatch and KITTI weights, converted by `descriptors/buffer_export.py` into
-`descriptors/buffer_<family>_desc.onnx` (+ `buffer_3dmatch_ref.onnx`); model card
-`descriptors/BUFFER_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D preprocessing + onnxruntime (CPU);
+The published 3DMatch and KITTI weights, converted by `training/buffer_export.py` into
+`fastmac_exp/models/buffer_<family>_desc.onnx` (+ `buffer_3dmatch_ref.onnx`); model card
+`training/BUFFER_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D preprocessing + onnxruntime (CPU);
 torch is never imported here.
 
 Describing the keypoints of one cloud (lengths are BUFFER's, in metres, times `scale`; `scale` = the pair's
@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features, match_descriptors
-from fastmac_exp.descriptors.onnx_descriptor import repo_root, resolve_model_path
+from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
 from fastmac_exp.descriptors.patches import clean_points, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
@@ -62,8 +62,8 @@ log = logging.getLogger(__name__)
 
 MIN_POINTS = 10
 SHIPPED = {
-    "3dmatch": "descriptors/buffer_3dmatch_desc.onnx",
-    "kitti": "descriptors/buffer_kitti_desc.onnx",
+    "3dmatch": "models/buffer_3dmatch_desc.onnx",  # relative to the package (fastmac_exp/models/)
+    "kitti": "models/buffer_kitti_desc.onnx",
 }
 REF_INPUTS = (
     ("normals", "tensor(float)", 2),
@@ -698,5 +698,4 @@ __all__ = [
     "group_cells",
     "radius_neighbors",
     "ref_inputs",
-    "repo_root",
 ]

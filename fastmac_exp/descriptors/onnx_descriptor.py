@@ -1,10 +1,10 @@
 """Learned-descriptor front end: multi-scale local patches in a local reference frame (LRF), embedded by
-an ONNX model (the shipped `descriptors/fcgf_lite.onnx`, a small network trained here, not the published
-FCGF; its model card is descriptors/MODEL_CARD.md). BUFFER's published models have their own front end
+an ONNX model (the shipped `fastmac_exp/models/fcgf_lite.onnx`, a small network trained here, not the
+published FCGF; its model card is training/MODEL_CARD.md). BUFFER's published models have their own front end
 (fastmac_exp/descriptors/buffer.py, `descriptor=buffer`).
 
 Runtime path: numpy/scipy preprocessing + onnxruntime inference; torch is never imported here (the
-training recipe `descriptors/train.py` imports this preprocessing, so training and runtime cannot drift).
+training recipe `training/train.py` imports this preprocessing, so training and runtime cannot drift).
 
 Preprocessing of one cloud (lengths in metres; `voxel` = the pair's voxel size unless configured):
 
@@ -50,33 +50,24 @@ from fastmac_exp.descriptors.patches import (
     cloud_patches,
 )
 from fastmac_exp.errors import InputError
+from fastmac_exp.resources import candidates, find_file
 from fastmac_exp.types import Correspondences, Pair
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MODEL = "descriptors/fcgf_lite.onnx"
+DEFAULT_MODEL = "models/fcgf_lite.onnx"  # relative to the package (fastmac_exp/models/)
 META_PREFIX = "fastmac."
 
 
-def repo_root() -> Path:
-    """The repository root: the parent of the fastmac_exp package."""
-    return Path(__file__).resolve().parents[2]
-
-
 def resolve_model_path(model: str | os.PathLike) -> Path:
-    """`model` as given when it exists (absolute, or relative to the cwd), else relative to the repo root."""
-    p = Path(os.path.expanduser(str(model)))
-    if p.is_file():
-        return p
-    tried = [str(p.resolve()) if not p.is_absolute() else str(p)]
-    if not p.is_absolute():
-        q = repo_root() / p
-        if q.is_file():
-            return q
-        tried.append(str(q))
+    """`model` as given when it exists (absolute, or relative to the cwd), else relative to the package."""
+    found = find_file(model)
+    if found is not None:
+        return found
+    tried = [str(c.resolve()) for c in candidates(model)]
     raise InputError(
         f"ONNX descriptor model {str(model)!r} not found (tried {' and '.join(tried)}). Train and export "
-        f"it with `python -m descriptors.train`, or set descriptor.model to an existing .onnx file"
+        f"it with `python -m training.train`, or set descriptor.model to an existing .onnx file"
     )
 
 
@@ -89,7 +80,7 @@ def _fixed(d) -> int | None:
 
 
 class OnnxDescriptor(FeatureDescriptor):
-    """Learned local descriptors from an ONNX model (default: the shipped `descriptors/fcgf_lite.onnx`).
+    """Learned local descriptors from an ONNX model (default: the shipped fastmac_exp/models/fcgf_lite.onnx).
 
     Keypoints are the voxel-downsampled cloud (the pair's voxel size unless `voxel_size` is given),
     each described by the model from its LRF patch (module docstring: the input/output contract).

@@ -1,11 +1,12 @@
-"""Train and export the learned local descriptor `descriptors/fcgf_lite.onnx` (see MODEL_CARD.md).
+"""Train and export the learned local descriptor `fastmac_exp/models/fcgf_lite.onnx` (see MODEL_CARD.md).
 
-    cd /work/main && PYTHONPATH=. python -m descriptors.train     # the shipped model: ~22 min on 1 thread
-    PYTHONPATH=. python -m descriptors.train --minutes 2 --pairs 20 --out /tmp/tiny.onnx   # a smoke run
+    cd /work/main && PYTHONPATH=. python -m training.train     # the shipped model: ~22 min on 1 thread
+    PYTHONPATH=. python -m training.train --minutes 2 --pairs 20 --out /tmp/tiny.onnx   # a smoke run
 
-Writes the model (--out), `loss_curve.png` next to it and `<out>.train.json` (arguments, timings,
+Writes the model (--out), `loss_curve.png` and `<out stem>.train.json` next to it (in training/ for the
+shipped model) (arguments, timings,
 validation curve). Recipe: 120 synthetic indoor pairs (SyntheticDataset family 3dmatch, training seed
-1000; validation seed 2000; descriptors/evaluate.py uses seed 0) -> each cloud rotated by a uniform
+1000; validation seed 2000; training/evaluate.py uses seed 0) -> each cloud rotated by a uniform
 random SO(3) rotation (the GT follows) -> keypoints by voxel downsampling at 0.05 m and their two-scale
 LRF patches (fastmac_exp.descriptors.onnx_descriptor: the runtime's own preprocessing) -> positives =
 source/target keypoints within 0.75 voxel of each other under GT -> PatchNet (two-stage PointNet, 32-D
@@ -31,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-if str(REPO) not in sys.path:  # `python descriptors/train.py` from anywhere
+DEFAULT_OUT = REPO / "fastmac_exp" / "models" / "fcgf_lite.onnx"
+if str(REPO) not in sys.path:  # `python training/train.py` from anywhere
     sys.path.insert(0, str(REPO))
 
 import torch  # noqa: E402
@@ -43,7 +45,7 @@ from fastmac_exp.descriptors.patches import FEATURES, PatchParams, cloud_patches
 
 TRAIN_SEED = 1000
 VAL_SEED = 2000
-EVAL_SEED = 0  # descriptors/evaluate.py; never used for training or model selection
+EVAL_SEED = 0  # training/evaluate.py; never used for training or model selection
 VOXEL = 0.05
 INLIER_THRESHOLD = 0.1
 
@@ -304,7 +306,7 @@ def plot_curve(
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=str(REPO / "descriptors" / "fcgf_lite.onnx"))
+    ap.add_argument("--out", default=str(DEFAULT_OUT))
     ap.add_argument("--curve", default=None, help="loss curve PNG (default: next to --out, loss_curve.png)")
     ap.add_argument("--pairs", type=int, default=120, help="training pairs (synthetic indoor, seed 1000)")
     ap.add_argument("--val-pairs", type=int, default=4, help="validation pairs (seed 2000)")
@@ -349,7 +351,9 @@ def main(argv: list[str] | None = None) -> None:
         support_factor2=args.support_factor2,
     )
     out = Path(args.out)
-    curve = Path(args.curve) if args.curve else out.parent / "loss_curve.png"
+    # the shipped model goes into the package; its records (curve, .train.json) stay in training/
+    records = REPO / "training" if out.resolve() == DEFAULT_OUT.resolve() else out.parent
+    curve = Path(args.curve) if args.curve else records / "loss_curve.png"
 
     train = load_pairs(args.pairs, TRAIN_SEED, params, args.cache_dir, rng, "training pairs")
     from fastmac_exp.datasets.synthetic import SyntheticDataset
@@ -433,7 +437,7 @@ def main(argv: list[str] | None = None) -> None:
         "selected_step": best[1],
         "onnx_max_abs_diff": err,
     }
-    out.with_suffix(".train.json").write_text(json.dumps(summary, indent=1))
+    (records / (out.stem + ".train.json")).write_text(json.dumps(summary, indent=1))
     print(f"loss curve: {curve}; total {summary['total_s'] / 60:.1f} min")
 
 

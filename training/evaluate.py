@@ -1,12 +1,12 @@
 """Evaluate the descriptors on the same keypoints (FPFH, fcgf_lite, BUFFER), then MAC and FastMAC on each.
 
-    cd /work/main && PYTHONPATH=. python -m descriptors.evaluate --real \\
-        --json descriptors/evaluation_real.json          # every pair of ../shared/data (BUFFER_MODEL_CARD.md)
-    PYTHONPATH=. python -m descriptors.evaluate --synthetic-pairs 20 --lomatch-pairs 20 \\
-        --descriptors fcgf_lite fpfh --json descriptors/evaluation.json   # fcgf_lite's card (MODEL_CARD.md)
-    PYTHONPATH=. python -m descriptors.evaluate --synthetic-pairs 10 --kitti-pairs 10 --descriptors buffer \\
+    cd /work/main && PYTHONPATH=. python -m training.evaluate --real \\
+        --json training/evaluation_real.json          # every pair of ../shared/data (BUFFER_MODEL_CARD.md)
+    PYTHONPATH=. python -m training.evaluate --synthetic-pairs 20 --lomatch-pairs 20 \\
+        --descriptors fcgf_lite fpfh --json training/evaluation.json   # fcgf_lite's card (MODEL_CARD.md)
+    PYTHONPATH=. python -m training.evaluate --synthetic-pairs 10 --kitti-pairs 10 --descriptors buffer \\
         --thresholds 0.85 0.95 0.99 0.999                  # graph-threshold check on held-out synthetic pairs
-    PYTHONPATH=. python -m descriptors.evaluate --speed    # BUFFER seconds per fragment, 1 and 2 threads
+    PYTHONPATH=. python -m training.evaluate --speed    # BUFFER seconds per fragment, 1 and 2 threads
 
 Real pairs: every entry of <repo>/../shared/data/pairs.json, loaded by `SharedRealPairs` with its rules
 (indoor: 3DMatch/3DLoMatch family, voxel 0.05 m, inlier 0.1 m, RE 15 deg / TE 0.3 m; outdoor: KITTI,
@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> None:
         "--seed", type=int, default=EVAL_SEED, help="synthetic seed, correspondence cap, samplers"
     )
     ap.add_argument("--thresholds", type=float, nargs="*", default=None, help="also sweep graph.threshold")
-    ap.add_argument("--fcgf-model", default="descriptors/fcgf_lite.onnx")
+    ap.add_argument("--fcgf-model", default="fastmac_exp/models/fcgf_lite.onnx")
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime threads of the learned descriptors")
     ap.add_argument("--cache-dir", default=str(REPO / ".cache" / "synthetic"))
     ap.add_argument("--no-cache", action="store_true", help="recompute the correspondences")

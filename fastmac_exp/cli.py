@@ -1,0 +1,185 @@
+"""The command line: the Hydra app behind `python run.py ...`, `python -m fastmac_exp ...` and the
+`fastmac-exp` console script (all three the same), plus the checks that turn Hydra's raw errors for a
+missing launcher plugin or a mistyped key into a message that says what to do."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from fastmac_exp.errors import FastMacError
+from fastmac_exp.resources import config_dir
+from fastmac_exp.samplers import ratio_used
+
+log = logging.getLogger("fastmac_exp")
+
+# hydra/launcher option -> (the Hydra plugin module it needs, the package that installs it)
+LAUNCHER_PLUGINS = {
+    "slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "ray_cluster": ("hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher"),
+}
+
+
+def check_launcher(argv: list[str]) -> str | None:
+    """The install hint for a `hydra/launcher=NAME` override whose plugin is missing, else None (Hydra's
+    own message, "Could not load 'hydra/launcher/submitit_slurm'", names neither plugin nor package)."""
+    import importlib.util
+
+    for arg in argv:
+        key, _, name = arg.lstrip("+~").partition("=")
+        if key != "hydra/launcher" or name not in LAUNCHER_PLUGINS:
+            continue
+        module, package = LAUNCHER_PLUGINS[name]
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except ModuleNotFoundError:
+            found = False
+        if not found:
+            return (f"hydra/launcher={name} needs the Hydra plugin {package!r}, which is not installed: "
+                    f"pip install {package}")  # fmt: skip
+    return None
+
+
+# The ratio in a run directory's name: the one used (sampler=none keeps everything).
+OmegaConf.register_new_resolver("run_ratio", ratio_used, replace=True)
+# What Hydra and the experiment write before the first pair: a directory holding nothing else is no run.
+EMPTY_RUN = {".hydra", "run.log", "config.yaml", "config.resumed.yaml"}
+
+
+def drop_if_empty(run_dir: Path, keep_log_in: Path | None = None) -> None:
+    """Remove a single run's directory that holds no results (a config error, or a resume= run whose
+    results went to the resumed directory; its log moves there first)."""
+    if not run_dir.is_dir() or not set(p.name for p in run_dir.iterdir()) <= EMPTY_RUN:
+        return
+    if keep_log_in is not None and (run_dir / "run.log").exists():
+        shutil.move(
+            str(run_dir / "run.log"), keep_log_in / f"run.resumed-{time.strftime('%Y%m%d-%H%M%S')}.log"
+        )
+    shutil.rmtree(run_dir, ignore_errors=True)
+
+
+@hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="config")
+def main(cfg: DictConfig) -> float:
+    from fastmac_exp.experiment import format_summary, run_experiment
+
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    single = hydra_cfg.mode != RunMode.MULTIRUN
+    try:
+        _, summary = run_experiment(cfg, run_dir)
+    except Exception as exc:  # noqa: BLE001 - our own errors, even wrapped by Hydra's instantiate, exit cleanly
+        ours = _own_error(exc)
+        if ours is None:
+            raise
+        log.error("%s", ours)
+        if single:
+            drop_if_empty(run_dir)
+        sys.exit(2)
+    if single and Path(summary["run_dir"]).resolve() != run_dir.resolve():
+        drop_if_empty(run_dir, keep_log_in=Path(summary["run_dir"]))
+    # One write: parallel sweep members (joblib processes) share the console, and a pipe keeps a write of
+    # up to PIPE_BUF (4 KiB) bytes whole, so their summaries do not interleave.
+    text = (
+        format_summary(summary)
+        + f"\nresults: {summary['run_dir']}/results.parquet (and .csv, summary.json)\n"
+    )
+    sys.stdout.flush()
+    sys.stdout.write(text)
+    sys.stdout.flush()
+    if summary.get("pairs", 0) and summary.get("failed", 0) == summary["pairs"]:
+        log.error("every pair failed (reasons above)")
+        # A single run fails; a sweep member is a measurement (e.g. random sampling at 1 % registers
+        # nothing) and the sweep goes on.
+        if single:
+            sys.exit(1)
+    return float(summary.get("RR", 0.0))
+
+
+def key_value(overrides: list[str], key: str) -> str:
+    return next((o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == key), "N")
+
+
+def check_keys(argv: list[str]) -> str | None:
+    """Our message for an override of a key that does not exist (Hydra's suggests adding it with `+`, which
+    is never what a typo needs), with the closest existing key; None when the overrides compose."""
+    overrides = [a for a in argv if not a.startswith(("-", "hydra.", "hydra/"))]  # Hydra's own: its checks
+    dotted = [a for a in overrides if "=" in a and "." in a.split("=")[0] and a[0] not in "+~"]
+    if not dotted:
+        return None
+    import difflib
+    import re
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    conf = str(config_dir())
+
+    def composed(ovr: list[str]) -> DictConfig:
+        GlobalHydra.instance().clear()
+        try:
+            with initialize_config_dir(config_dir=conf, version_base="1.3"):
+                return compose("config", overrides=ovr)
+        finally:
+            GlobalHydra.instance().clear()
+
+    try:
+        composed(overrides)
+        return None
+    except Exception as exc:  # noqa: BLE001 - anything but a missing key is left to Hydra's own report
+        m = re.search(r"Could not override '([^']+)'", str(exc))
+        if not m:
+            return None
+        key = m.group(1)
+    if key == "dataset.limit":
+        n = key_value(overrides, key)
+        return f"dataset.limit is a run key: write limit={n} (the first N pairs of any dataset)"
+    try:
+        cfg = composed([o for o in overrides if o.split("=")[0] != key])
+    except Exception:  # noqa: BLE001
+        return None
+    known = []
+
+    def walk(node, prefix: str) -> None:
+        for k in node:
+            path = f"{prefix}{k}"
+            known.append(path)
+            if OmegaConf.is_dict(node[k]):
+                walk(node[k], path + ".")
+
+    walk(cfg, "")
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown config key {key!r}{hint} (python run.py --cfg job shows every key)"
+
+
+def _own_error(exc: BaseException) -> FastMacError | None:
+    """The project's error behind exc (Hydra wraps constructor errors in InstantiationException)."""
+    seen = 0
+    while exc is not None and seen < 10:
+        if isinstance(exc, FastMacError):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None
+
+
+def run() -> None:
+    """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
+    hint = check_launcher(sys.argv[1:]) or check_keys(sys.argv[1:])
+    if hint:
+        log.addHandler(logging.StreamHandler())
+        log.error(hint)
+        sys.exit(2)
+    main()
+
+
+if __name__ == "__main__":
+    run()
