@@ -2,7 +2,7 @@
 (E-optimal) sampling, the left panel of the paper's Fig. stochastic, plus its right panel's split into
 preparation (graph, signal / eigendecomposition) and the selection itself.
 
-    python docs/time_samplers.py [--out outputs/studies/sampler_timing] [--budget-s 240]
+    python -m studies.time_samplers [--out outputs/studies/sampler_timing] [--budget-s 240]
 
 Correspondences: FPFH on synthetic KITTI-like pair 0 (seed 0), subsets of N rows. The deterministic
 sampler's cost grows as O(N^3 + N k^3 K); counts whose predicted time would exceed the budget left are
@@ -26,13 +26,13 @@ import pandas as pd  # noqa: E402
 
 from fastmac_exp.datasets.synthetic import SyntheticDataset  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
-from fastmac_exp.samplers.deterministic import graph_shift_eigenvectors, greedy_e_optimal  # noqa: E402
 from fastmac_exp.graph import first_order  # noqa: E402
 from fastmac_exp.params import mac_params_for  # noqa: E402
 from fastmac_exp.samplers import (  # noqa: E402
     GraphFilterSampler,
     draw_proportional,
 )
+from fastmac_exp.samplers.deterministic import graph_shift_eigenvectors, greedy_e_optimal  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DET = "deterministic (greedy E-optimal)"

@@ -1,20 +1,20 @@
 #!/usr/bin/env bash
 # Runs the paper's studies (conf/experiment presets) sequentially into outputs/studies/<study>_<data>/,
-# then docs/make_results.py turns them into docs/results.md and docs/figures/.
+# then `python -m studies.make_results` turns them into docs/results.md and docs/figures/.
 #
-#   docs/run_studies.sh                      # everything (about 40 min on a shared 2-core CPU)
-#   docs/run_studies.sh sampling filter      # some studies
-#   DATA="3dmatch kitti" N=8 docs/run_studies.sh sampling   # fewer data sets / pairs
-#   RESUME=1 DATA=kitti docs/run_studies.sh sampling    # finish an interrupted sweep (same command)
-#   python docs/make_results.py              # tables + figures -> docs/results.md
+#   studies/run_studies.sh                      # everything (about 40 min on a shared 2-core CPU)
+#   studies/run_studies.sh sampling filter      # some studies
+#   DATA="3dmatch kitti" N=8 studies/run_studies.sh sampling   # fewer data sets / pairs
+#   RESUME=1 DATA=kitti studies/run_studies.sh sampling    # finish an interrupted sweep (same command)
+#   python -m studies.make_results              # tables + figures -> docs/results.md
 # The signal and descriptor studies skip the synthetic KITTI-like family (KITTI_ALL=1 includes it): its
 # RR stays at 100 % down to ratio 0.01, and its dense inlier graphs make the clique search slow.
 #
 # Studies: sampling filter signal stochastic descriptor profile sota timing
 # Data:    3dmatch kitti 3dlomatch (synthetic families, N pairs each), real_indoor real_outdoor
 #          (the real pairs of ../shared/data, dataset=shared_real by category)
-# Each study's directory is deleted first: a run directory that already holds results is resumed
-# (its finished pairs are skipped whatever the config), so stale results would otherwise be kept.
+# Each sweep's directory is deleted first (RESUME=1 keeps it): a run directory that already holds results
+# is refused without resume=, and with it resumed (its finished pairs skipped whatever the config).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -38,11 +38,12 @@ export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 COMMON=(tracker=none progress=false mac.time_limit_s=${TIME_LIMIT_S:-0})
 
 # the C++ extension, copied once: `pip install -e .` (by anyone) rewrites the installed one in place, which
-# crashes a running sweep; docs/pinned_run.py loads this copy instead (delete $OUT/_core to refresh it)
+# crashes a running sweep; fastmac_exp loads this copy instead (FASTMAC_CORE_SO, fastmac_exp/core.py; delete
+# $OUT/_core to refresh it). The copy's source is the installed extension, whatever FASTMAC_CORE_SO says now.
 CORE=$OUT/_core/_mac_core.so
 if [ ! -f "$CORE" ]; then
   mkdir -p "$OUT/_core"
-  src=$(python -c "import importlib.util as u; print(u.find_spec('fastmac_exp._mac_core').origin)")
+  src=$(env -u FASTMAC_CORE_SO python -c "import importlib.util as u; print(u.find_spec('fastmac_exp._mac_core').origin)")
   cp "$src" "$CORE"
   { echo "copied $(date -u +%FT%TZ) from $src"; echo "sha1 $(sha1sum "$CORE" | cut -c1-40)";
     echo "commit $(git rev-parse HEAD)$(git diff --quiet HEAD -- fastmac_exp/_cpp || echo ' + uncommitted C++ changes')"; } >"$OUT/_core/info.txt"
@@ -67,12 +68,13 @@ sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, ti
   local t0=$SECONDS attempt
   echo "[$(date +%T)] python run.py -m $* ${COMMON[*]} hydra.sweep.dir=$dir" | tee -a "$LOG"
   echo "  code: $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- fastmac_exp || echo ' + uncommitted changes under fastmac_exp/'); C++ core: $CORE" >>"$LOG"
-  # a crash (e.g. the C++ extension rebuilt under a running sweep) is retried: the same command into the
-  # same directory resumes every member run, skipping its finished pairs
+  # a crash (e.g. the C++ extension rebuilt under a running sweep) is retried into the same directory with
+  # resume=auto, which resumes every member run, skipping its finished pairs (without resume= the experiment
+  # refuses a directory that already holds results)
   local again=()
   [ "${RESUME:-0}" = 1 ] && again=(resume=auto)
   for attempt in 1 2 3; do
-    if python docs/pinned_run.py -m "$@" "${COMMON[@]}" "${again[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
+    if python run.py -m "$@" "${COMMON[@]}" "${again[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
       echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
       return 0
     fi
@@ -142,9 +144,9 @@ for study in "${STUDIES[@]}"; do
       sweep "$OUT/stochastic_vs_deterministic_kitti" +experiment=stochastic_vs_deterministic \
         $(data_args kitti) limit=4 ratio=0.05,0.02,0.01 ;;
     timing)  # Fig. stochastic, left: sampling time against the sample count, both samplers
-      echo "[$(date +%T)] python docs/time_samplers.py" | tee -a "$LOG"
+      echo "[$(date +%T)] python -m studies.time_samplers" | tee -a "$LOG"
       t0=$SECONDS
-      python docs/time_samplers.py --out "$OUT/sampler_timing" --budget-s 150 >>"$LOG" 2>&1
+      python -m studies.time_samplers --out "$OUT/sampler_timing" --budget-s 150 >>"$LOG" 2>&1
       echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG" ;;
     *) echo "unknown study $study" >&2; exit 2 ;;
   esac

@@ -1,0 +1,215 @@
+"""studies/: the paper's numbers in studies/paper agree with the paper's LaTeX and the README table the spec
+quotes, and make_results renders a page from a small hand-made studies directory."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from fastmac_exp.results import ResultsLog
+from studies import common, make_results
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+
+
+# ---- the paper's numbers ----------------------------------------------------------------------------------
+def _paper_tex() -> str:
+    for f in sorted((SHARED / "paper").glob("*")):
+        if f.is_file() and "FastMAC: Stochastic Spectral Sampling" in (t := f.read_text(errors="replace")):
+            return t
+    pytest.skip("the paper's LaTeX is not in ../shared/paper")
+
+
+def _tex_table(tex: str, anchor: str) -> list[tuple[str, list[float]]]:
+    """The rows of the table (\\begin{table} .. \\end{table}) around `anchor`: (name cell, the numbers of
+    the other cells), one per line with a `&`; bold, underline, \\cite and \\multirow taken out."""
+    at = tex.index(anchor)
+    body = tex[tex.rindex("\\begin{table}", 0, at) : tex.index("\\end{table}", at)]
+    rows = []
+    for line in body.splitlines():
+        if "&" not in line or "multicolumn" in line:  # a header row
+            continue
+        line = re.sub(
+            r"\\cite\{[^}]*\}|\\multirow\{\d+\}\{\*\}|\\begin\{tabular\}\[c\]\{@\{\}c@\{\}\}", "", line
+        )
+        name, *cells = line.split("&")
+        name = re.sub(r"\\(textbf|ul)|[{}]", "", name.split("\\\\")[0]).strip()
+        nums = [float(m) for c in cells for m in re.findall(r"-?\d+(?:\.\d+)?", re.sub(r"\\\\.*", "", c))]
+        if nums:  # else a header row
+            rows.append((name, nums))
+    return rows
+
+
+def test_paper_profile_is_table_profile():
+    rows = _tex_table(_paper_tex(), "\\label{tab:profile}")
+    got = {n[0]: tuple(n[1:]) for _, n in rows}  # ratio (%) -> Sampling, GC, MCS, NCS, PE, Total
+    assert set(got) == {100, 50, 20, 10, 5, 1}
+    for pct, stages in got.items():
+        assert common.PAPER_PROFILE[pct / 100] == pytest.approx(stages, abs=1e-9)
+    assert common.PAPER_PROFILE[1.0][-1] == 961.312 and common.PAPER_PROFILE[0.05][0] == 14.99  # spot values
+
+
+def test_paper_filter_is_table_filter():
+    rows = _tex_table(_paper_tex(), "\\label{tab:filter}")
+    assert len(rows) == 5
+    for pct, cells in rows:  # ratio (%), then RR, RE, TE of high-pass, all-pass, low-pass
+        for i, f in enumerate(("highpass", "allpass", "lowpass")):
+            assert common.PAPER_FILTER[f][float(pct) / 100] == pytest.approx(
+                cells[3 * i : 3 * i + 3], abs=1e-9
+            )
+    assert common.PAPER_FILTER["lowpass"][0.01] == (13.33, 3.516, 106.211)  # spot value, read in the .tex
+
+
+@pytest.mark.parametrize(
+    "benchmark,label", [("KITTI", "tab:kitti"), ("3DMatch", "tab:3dmatch"), ("3DLoMatch", "tab:3dlomatch")]
+)
+def test_paper_sota_is_the_fpfh_columns(benchmark, label):
+    names = {"mac": "MAC", "fastmac50": "FastMAC@50", "fastmac20": "FastMAC@20", "fgr": "FGR"}
+    rows = dict(_tex_table(_paper_tex(), f"\\label{{{label}}}"))
+    src = common.read_data(common.PAPER / "table_sota.csv")
+    methods = src.loc[src["benchmark"].eq(benchmark) & src["source"].eq(label), "method"]
+    assert len(methods) >= 3
+    for m in methods:
+        nums = rows[names[m]]  # FPFH RR, RE, TE, FCGF RR, RE, TE, Time (s)
+        assert common.PAPER_SOTA[benchmark][m] == pytest.approx((*nums[:3], 1000 * nums[-1]), abs=1e-6)
+
+
+def test_paper_ransac_is_the_appendix_table():
+    rows = dict(
+        _tex_table(_paper_tex(), "Comparison on RR, RE and TE with SOTA methods on the KITTI dataset")
+    )
+    for m, name in (("ransac1k", "RANSAC 1K"), ("ransac10k", "RANSAC 10K")):
+        assert common.PAPER_SOTA["KITTI"][m] == pytest.approx(rows[name][-4:])  # RR, RE, TE, ms
+    assert common.PAPER_SOTA["KITTI"]["ransac10k"] == (88.47, 1.15, 25.33, 158.4)  # spot value
+
+
+def test_paper_rr_is_the_readme_table_of_the_spec():
+    spec = SHARED / "spec" / "mac-fastmac-algorithm.md"
+    if not spec.exists():
+        pytest.skip("../shared/spec is absent")
+    text = spec.read_text()
+    table = text[text.index("FastMAC README, RR at ratios") :].split("\n\n")[1]
+    got = {}
+    for line in table.splitlines()[2:]:
+        name, *vals = [c.strip() for c in line.strip("| ").split("|")]
+        bench, desc = name.split()
+        got[(bench, desc.lower())] = tuple(float(v) for v in vals)
+    assert got == common.PAPER_RR
+    assert common.PAPER_RR[("3DLoMatch", "fcgf")][4] == 51.49  # 5 %, spot value
+
+
+# ---- make_results on a hand-made studies directory --------------------------------------------------------
+def _run(directory: Path, rows: list[dict]) -> None:
+    log = ResultsLog(directory)
+    for i, r in enumerate(rows):
+        log.append({"index": i, "protocol": "honest", "error": "", "cap_hit": "", "re_deg": 1.0, "te_cm": 5.0,
+                    "n_in": 1000, "inliers_in": 50, "inlier_ratio_in": 0.05, "inlier_ratio_kept": 0.2,
+                    "t_sampling_ms": 2.0, "t_total_ms": 10.0} | r)  # fmt: skip
+    log.write_tables()
+
+
+def _pairs(n: int, ok: int, **fields) -> list[dict]:
+    """n pairs of which the first `ok` registered."""
+    return [dict(pair=f"p{i}", success=i < ok, **fields) for i in range(n)]
+
+
+@pytest.fixture(scope="module")
+def page(tmp_path_factory) -> tuple[str, Path]:
+    root = tmp_path_factory.mktemp("results")
+    studies = root / "studies"
+    base = dict(dataset="synthetic", descriptor="fpfh", backend="cpp")
+    # sampling strategy, synthetic 3DMatch-like: 4 pairs x 2 seeds; MAC 4/4, at 5 % high-pass 4/4 and 3/4
+    # (RR 87.5 ± 17.7), random 2/4 and 2/4, FPS 0/4
+    sweep = studies / "sampling_strategy_3dmatch"
+    for seed in (0, 1):
+        _run(sweep / "mac" / str(seed), _pairs(4, 4, sampler="none", ratio=1.0, seed=seed, **base))
+        rows = _pairs(4, 4 - seed, sampler="highpass", ratio=0.05, seed=seed, **base)
+        rows += _pairs(4, 2, sampler="random", ratio=0.05, seed=seed, **base)
+        rows += _pairs(4, 0, sampler="fps", ratio=0.05, seed=seed, **base)
+        _run(sweep / "sweep" / str(seed), rows)
+    # state of the art, real indoor: MAC 4/4 at 80 ms, FastMAC@20 3/4 at 20 ms, RANSAC 1k 1/4 (one failed)
+    sota = studies / "state_of_the_art_real_indoor"
+    real = dict(base, dataset="shared_real", seed=0)
+    _run(sota / "mac", _pairs(4, 4, sampler="none", ratio=1.0, **real | {"t_total_ms": 80.0}))
+    _run(sota / "f20", _pairs(4, 3, sampler="highpass", ratio=0.2, **real | {"t_total_ms": 20.0}))
+    ransac = _pairs(4, 1, sampler="none", ratio=1.0, **real | {"backend": "ransac1k"})
+    ransac[3]["error"] = "RegistrationFailed: no consensus"
+    _run(sota / "ransac", ransac)
+    md = make_results.make_results(studies, root / "docs")
+    return md, root / "docs"
+
+
+def _table_row(md: str, section: str, first_cell: str) -> list[str]:
+    """The cells of the first table row starting with `first_cell` after the line `section`."""
+    rest = md[md.index(section) :]
+    line = next(ln for ln in rest.splitlines() if ln.startswith(f"| {first_cell} |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_make_results_puts_the_numbers_in_their_tables(page):
+    md, docs = page
+    assert (docs / "results.md").read_text() == md
+    heading = "### 3dmatch: synthetic indoor (3DMatch-like) — 4 pairs × 2 seeds"
+    assert _table_row(md, heading, "0.05") == ["0.05", "87.5 ± 17.7", "50.0 ± 0.0", "0.0 ± 0.0", "74.49"]
+    assert _table_row(md, heading, "1")[1:] == ["100.0 ± 0.0"] * 3 + ["83.86"]
+    assert _table_row(md, heading, "0.2")[1:] == ["–", "–", "–", "80.71"]  # not run; the paper's column stays
+    sota = "### real_indoor: real indoor pairs (3DMatch/3DLoMatch fragments) — 4 pairs"
+    mac = (
+        "MAC | 100.0 | 1.00 | 5.00 | 80.0 | 0 | 83.90 | 2.11 | 6.80 | 914.0"  # ours, then the paper's 3DMatch
+    )
+    assert " | ".join(_table_row(md, sota, "MAC")) == mac
+    assert _table_row(md, sota, "FastMAC@20")[:6] == ["FastMAC@20", "75.0", "1.00", "5.00", "20.0", "0"]
+    assert _table_row(md, sota, "RANSAC 1k")[1:6] == ["25.0", "1.00", "5.00", "10.0", "1"]
+    # the paper's tables are printed whatever ran
+    assert _table_row(md, "Paper (KITTI, FCGF):", "0.01")[1:4] == ["71.89", "28.11", "13.33"]
+    assert _table_row(md, "Paper (3DMatch, FCGF, GPU sampling):", "1")[-1] == "961.3"
+
+
+def test_make_results_claims_notes_and_layout(page):
+    md, docs = page
+    assert "**How much data:** 3dmatch: 4 pairs × 2 seeds." in md
+    assert "MAC's RR at ratio 1: 3dmatch 100.0 ± 0.0 %;" in md
+    claims = md[md.index("## Where we agree") : md.index("## 1. Sampling strategy")]
+    assert "- **High-pass beats random and FPS at 0.05** — synthetic: agrees 1 (of 1 data sets)" in claims
+    assert (
+        "  - 3dmatch (4 pairs × 2 seeds): high-pass 87.5 ± 17.7 vs random 50.0 ± 0.0, FPS 0.0 ± 0.0 → agrees"
+        in claims
+    )
+    assert (
+        "- **FastMAC@20 loses little RR against MAC (paper: KITTI 97.66 → 98.02 %, 3DMatch 83.90 → 80.71 %, "
+        "3DLoMatch 40.88 → 34.31 %; agrees: at most the paper's loss plus one pair)** — real: agrees 1"
+        in claims
+    )
+    assert "  - real_indoor: RR 100.0 → 75.0 % (4 pairs), at 80.0 → 20.0 ms (4.0×) → agrees" in claims
+    assert (
+        "state of the art, real_indoor, RANSAC 1k: 1 failed pair(s), e.g. `RegistrationFailed: no consensus`"
+        in md
+    )
+    sections = [ln for ln in md.splitlines() if ln.startswith("## ")]
+    expected = ["## Summary", "## Where we agree", "## 1. Sampling strategy", "## 2. High-pass vs low-pass",
+                "## 3. Degree signal", "## 4. Stochastic vs deterministic", "## 5. Descriptor robustness",
+                "## 6. Time profile", "## 7. State of the art", "## Notes", "## What ran"]  # fmt: skip
+    assert len(sections) == len(expected) and all(s.startswith(e) for s, e in zip(sections, expected))
+    assert "$" not in md and "<!--" not in md
+    assert sorted(p.name for p in (docs / "figures").glob("*.png")) == [
+        "sampling_strategy.png",
+        "state_of_the_art.png",
+    ]
+    assert sorted(p.name for p in (docs / "results").glob("*.csv")) == [
+        "sampling_strategy_3dmatch.csv", "state_of_the_art_real_indoor.csv"]  # fmt: skip
+    csv = pd.read_csv(docs / "results" / "sampling_strategy_3dmatch.csv")
+    hp = csv[csv["sampler"].eq("highpass")].iloc[0]
+    assert hp["RR"] == 87.5 and np.isclose(hp["RR_seed_std"], 17.67767)
+
+
+def test_text_needs_every_placeholder():
+    with pytest.raises(KeyError):
+        common.text("header", machine="m", core="", counts="c")  # mac_rr missing
+    lines = common.text("header", machine="M", core=" C.", counts="c", mac_rr="r")
+    assert lines[:2] == ["# Results: the FastMAC paper's studies on this project", ""]
+    assert lines[4].startswith("**Machine:** M; the two cores") and lines[4].endswith("each other. C.")
