@@ -1,7 +1,8 @@
 """On-disk cache of descriptor output, so sweeps over samplers and ratios describe each pair once.
 
 Keyed by everything that determines the correspondences (dataset config, pair, descriptor config, seed);
-files are .npz read with allow_pickle=False; an unreadable entry is recomputed, never trusted.
+files are .npz read with allow_pickle=False; an unreadable entry is recomputed, never trusted. Entries are
+written whole (fastmac_exp.atomic), so many workers can share one cache directory on a shared filesystem.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from fastmac_exp.atomic import save_npz
 from fastmac_exp.types import Correspondences
 
 log = logging.getLogger(__name__)
@@ -52,10 +54,6 @@ class CorrespondenceCache:
     def save(self, key: str, corr: Correspondences, describe_ms: float) -> None:
         if not self.enabled:
             return
-        path = self._path(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
         labels = corr.labels if corr.labels is not None else np.zeros(0, bool)
-        np.savez(tmp, src=corr.src, tgt=corr.tgt, labels=labels, has_labels=corr.labels is not None,
-                 describe_ms=describe_ms)  # fmt: skip
-        os.replace(tmp, path)
+        save_npz(self._path(key), src=corr.src, tgt=corr.tgt, labels=labels,
+                 has_labels=corr.labels is not None, describe_ms=describe_ms)  # fmt: skip

@@ -21,11 +21,20 @@ from fastmac_exp.samplers import ratio_used
 
 log = logging.getLogger("fastmac_exp")
 
-# hydra/launcher option -> (the Hydra plugin module it needs, the package that installs it)
+# hydra/launcher option -> the module it needs; all of them come with the cluster extra
+CLUSTER_INSTALL = "pip install -e '.[cluster]' -c constraints.txt"
 LAUNCHER_PLUGINS = {
-    "slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
-    "ray_cluster": ("hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher"),
+    "slurm": "hydra_plugins.hydra_submitit_launcher",
+    "submitit_slurm": "hydra_plugins.hydra_submitit_launcher",
+    "submitit_local": "hydra_plugins.hydra_submitit_launcher",
+    "ray_cluster": "ray",
 }
+# hydra-ray-launcher's own option: the package cannot be installed beside this project's joblib
+RAY_PLUGIN_HINT = (
+    "hydra/launcher=ray is hydra-ray-launcher's, which cannot be installed with this project: every release "
+    "requires cloudpickle<3 and joblib 1.6 (hydra-joblib-launcher) requires cloudpickle>=3.0; use "
+    f"hydra/launcher=ray_cluster (Ray itself, from {CLUSTER_INSTALL}; docs/cluster.md)"
+)
 
 
 def check_launcher(argv: list[str]) -> str | None:
@@ -35,16 +44,20 @@ def check_launcher(argv: list[str]) -> str | None:
 
     for arg in argv:
         key, _, name = arg.lstrip("+~").partition("=")
-        if key != "hydra/launcher" or name not in LAUNCHER_PLUGINS:
+        if key != "hydra/launcher":
             continue
-        module, package = LAUNCHER_PLUGINS[name]
+        if name == "ray" and importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is None:
+            return RAY_PLUGIN_HINT
+        if name not in LAUNCHER_PLUGINS:
+            continue
+        module = LAUNCHER_PLUGINS[name]
         try:
             found = importlib.util.find_spec(module) is not None
         except ModuleNotFoundError:
             found = False
         if not found:
-            return (f"hydra/launcher={name} needs the Hydra plugin {package!r}, which is not installed: "
-                    f"pip install {package}")  # fmt: skip
+            return (f"hydra/launcher={name} needs {module.split('.')[-1]!r}, which is not installed: "
+                    f"{CLUSTER_INSTALL} (docs/cluster.md)")  # fmt: skip
     return None
 
 

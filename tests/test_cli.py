@@ -66,13 +66,17 @@ def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_a
 
 
 def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
+    """Without the cluster extra, each cluster launcher says what to install (not Hydra's "Could not
+    load"); hydra-ray-launcher's own `ray` option says why it cannot be installed and what to use."""
     import importlib.util
 
     plugins = [
-        ("slurm", "hydra-submitit-launcher", "hydra_plugins.hydra_submitit_launcher"),
-        ("ray_cluster", "hydra-ray-launcher", "hydra_plugins.hydra_ray_launcher"),
+        ("slurm", "hydra_plugins.hydra_submitit_launcher"),
+        ("submitit_local", "hydra_plugins.hydra_submitit_launcher"),
+        ("ray_cluster", "ray"),
+        ("ray", "hydra_plugins.hydra_ray_launcher"),
     ]
-    for launcher, package, module in plugins:
+    for launcher, module in plugins:
         try:
             installed = importlib.util.find_spec(module) is not None
         except ModuleNotFoundError:
@@ -82,7 +86,9 @@ def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
         p = sweep(f"hydra/launcher={launcher}", "limit=1", sweep_dir=tmp_path / launcher)
         out = p.stdout + p.stderr
         assert p.returncode == 2, out[-2000:]
-        assert f"pip install {package}" in out and "Could not load" not in out
+        assert "pip install -e '.[cluster]' -c constraints.txt" in out and "Could not load" not in out
+        if launcher == "ray":
+            assert "cloudpickle<3" in out and "hydra/launcher=ray_cluster" in out
 
 
 def test_help_says_what_the_app_does_and_lists_the_groups():

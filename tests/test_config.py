@@ -83,7 +83,7 @@ def test_every_readme_run_command_composes(command):
 
     args = [a for a in shlex.split(command)[2:] if a not in ("-m", "--multirun")]
     launchers = {"slurm": "hydra_plugins.hydra_submitit_launcher",
-                 "ray_cluster": "hydra_plugins.hydra_ray_launcher",
+                 "ray_cluster": "ray",
                  "local": "hydra_plugins.hydra_joblib_launcher"}  # fmt: skip
     for a in args:
         if a.startswith("hydra/launcher="):

@@ -31,7 +31,6 @@ import json
 import logging
 import math
 import os
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.atomic import save_npz
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
@@ -262,17 +262,15 @@ def _checksum(src: np.ndarray, tgt: np.ndarray, gt: np.ndarray) -> str:
 
 
 def save_cached(path: Path, data: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}-{threading.get_ident()}.tmp.npz")
-    np.savez(
-        tmp,
+    """Write one pair, whole (fastmac_exp.atomic: concurrent writers and readers never meet a torn file)."""
+    save_npz(
+        path,
         src=data["src"],
         tgt=data["tgt"],
         gt=data["gt"],
         checksum=np.array(_checksum(data["src"], data["tgt"], data["gt"])),
         meta=np.array(json.dumps(data["meta"], sort_keys=True)),
     )
-    os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
 
 
 def load_cached(path: Path) -> dict[str, Any] | None:
