@@ -53,14 +53,13 @@ from scipy.spatial import cKDTree
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features, match_descriptors
 from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
-from fastmac_exp.descriptors.patches import clean_points, voxel_down
+from fastmac_exp.descriptors.patches import MIN_POINTS, keypoints, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 from fastmac_exp.types import Correspondences, Pair
 
 log = logging.getLogger(__name__)
 
-MIN_POINTS = 10
 SHIPPED = {
     "3dmatch": "models/buffer_3dmatch_desc.onnx",  # relative to the package (fastmac_exp/models/)
     "kitti": "models/buffer_kitti_desc.onnx",
@@ -649,16 +648,8 @@ class BufferDescriptor(FeatureDescriptor):
         self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch", scale=None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints `(M, 3)` (voxel downsampling at `voxel`) and their descriptors `(M, D)` float32."""
-        if voxel is None or not voxel > 0:
-            raise InputError(f"descriptor voxel size must be positive, got {voxel}")
+        pts, kp = keypoints(points, voxel, what)
         model = self.model_for(family)
-        pts = clean_points(points, what)
-        kp = voxel_down(pts, voxel)
-        if len(kp) < MIN_POINTS:
-            raise InputError(
-                f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-                f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
-            )
         if scale is None:
             scale = self.scale if self.scale is not None else voxel / model.params.reference_voxel
         return kp, self.describe(model, pts, kp, scale, what)

@@ -177,10 +177,8 @@ def support_clouds(points: np.ndarray, keypoints: np.ndarray, voxel: float, para
     return [keypoints if sf == 1.0 else voxel_down(points, sf * voxel) for _, _, sf in params.scales()]
 
 
-def cloud_patches(
-    points: np.ndarray, voxel: float, params: PatchParams, what: str = "cloud"
-) -> tuple[np.ndarray, np.ndarray]:
-    """Keypoints `(M, 3)` float64 and their model input `(M, K, C)` float32 for one cloud."""
+def keypoints(points: np.ndarray, voxel: float, what: str = "cloud") -> tuple[np.ndarray, np.ndarray]:
+    """(the cleaned cloud, its keypoints): the cloud voxel-downsampled at `voxel`, at least MIN_POINTS."""
     if voxel is None or not voxel > 0:
         raise InputError(f"descriptor voxel size must be positive, got {voxel}")
     pts = clean_points(points, what)
@@ -190,4 +188,12 @@ def cloud_patches(
             f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
             f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
         )
+    return pts, kp
+
+
+def cloud_patches(
+    points: np.ndarray, voxel: float, params: PatchParams, what: str = "cloud"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints `(M, 3)` float64 and their model input `(M, K, C)` float32 for one cloud."""
+    pts, kp = keypoints(points, voxel, what)
     return kp, extract_patches(kp, support_clouds(pts, kp, voxel, params), voxel, params)
