@@ -253,3 +253,22 @@ def test_deterministic_band_option():
     hi = DeterministicSampler(band="high").sample(corr, 0.05, gp, fam, np.random.default_rng(0)).indices
     lo = DeterministicSampler(band="low").sample(corr, 0.05, gp, fam, np.random.default_rng(0)).indices
     assert len(hi) == len(lo) == 10 and set(hi.tolist()) != set(lo.tolist())
+
+
+def test_sample_result_carries_its_ratio_and_stage_timings():
+    """What the pipeline and the timing study read instead of re-deriving: the ratio a sampler used
+    (`none` keeps everything) and, for the scoring samplers, preparation and draw times within the total."""
+    from fastmac_exp.params import GraphParams
+    from fastmac_exp.samplers import make_sampler, ratio_used
+    from tests.conftest import make_correspondences
+
+    corr, _ = make_correspondences(300, 0.3, seed=2)
+    gp = GraphParams()
+    rng = np.random.default_rng(0)
+    hp = make_sampler("highpass").sample(corr, 0.2, gp, "3dmatch", rng)
+    assert hp.ratio == 0.2 and len(hp.indices) == 60
+    assert {"sampling", "sampling_prep", "sampling_draw"} <= set(hp.timings)
+    assert hp.timings["sampling_prep"] + hp.timings["sampling_draw"] <= hp.timings["sampling"] + 1e-6
+    none = make_sampler("none").sample(corr, 0.2, gp, "3dmatch", rng)
+    assert none.ratio == 1.0 and len(none.indices) == 300 and ratio_used("none", 0.2) == 1.0
+    assert ratio_used("random", 0.2) == 0.2

@@ -14,6 +14,7 @@ Skipped without the cluster extra (CI's plain install); .ci/run installs it and 
 from __future__ import annotations
 
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -31,7 +32,9 @@ SWEEP = ("limit=2", "sampler=highpass,random", "ratio=0.2")
 # one BLAS thread per process: the members share the machine's cores
 THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 # `ray start` clusters use token authentication; the driver then needs this too (docs/cluster.md)
-RAY_ENV = {"RAY_AUTH_MODE": "token", "RAY_USAGE_STATS_ENABLED": "0"}
+# `ray start` turns token authentication on; a fresh HOME has no ~/.ray/auth_token, so the test's head and
+# its driver share a token of their own
+RAY_ENV = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_USAGE_STATS_ENABLED": "0"}
 
 
 def run_sweep(root: Path, *launcher: str, env: dict[str, str] | None = None, timeout: int = 300) -> Path:
