@@ -485,14 +485,17 @@ def bench_outdoor(args) -> list[OutdoorRow]:
 
 
 def signals_ms(
-    corr: Correspondences, reps: int, threads: int, single: bool, dense: bool
+    corr: Correspondences, reps: int, threads: int, single: bool, dense: bool, threshold: float | None = None
 ) -> tuple[float, int]:
-    """Median ms of the sampler's graph and signals (graph_signals), and the dense core's size."""
+    """Median ms of the sampler's graph and signals (graph_signals), and the dense core's size.
+    threshold=1.0 leaves no edge: what remains is the first-order screen over all N^2 / 2 pairs."""
     import os
+    from dataclasses import replace
 
     from fastmac_exp.params import mac_params_for
 
     g = mac_params_for("kitti", "fpfh").graph
+    g = g if threshold is None else replace(g, threshold=threshold)
     old = os.environ.get("FASTMAC_DENSE_CORE")
     os.environ["FASTMAC_DENSE_CORE"] = "on" if dense else "off"
     try:
@@ -513,24 +516,38 @@ def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:
     """The sampler's second-order graph (issue 11, item 3): sparse gathers against the dense-core product."""
     print("\nSampler graph + signals (graph_signals, 5,000 correspondences, KITTI/FPFH kernel), median ms")
     head = (
-        f"{'pair':34} {'core':>5} | {'sparse':>8} {'core f64':>9} {'core f32':>9} | {'x f64':>6} {'x f32':>6}"
+        f"{'pair':34} {'core':>5} | {'screen':>7} {'sparse':>8} {'core f64':>9} {'core f32':>9} | "
+        f"{'x f64':>6} {'x f32':>6} | {'sgemm':>6}"
     )
     print(head)
     print("-" * len(head))
     for name, corr in pairs:
+        screen, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True, threshold=1.0)
         sp_ms, _ = signals_ms(corr, args.reps, args.threads, single=False, dense=False)
         d64, m = signals_ms(corr, args.reps, args.threads, single=False, dense=True)
         d32, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True)
         print(
-            f"{name[:34]:34} {m:5d} | {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} | "
-            f"{sp_ms / d64:6.1f} {sp_ms / d32:6.1f}"
+            f"{name[:34]:34} {m:5d} | {screen:7.1f} {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} | "
+            f"{sp_ms / d64:6.1f} {sp_ms / d32:6.1f} | {sgemm_ms(m, args.reps):6.1f}"
         )
         sys.stdout.flush()
-    print("sparse: every product by gathers (FASTMAC_DENSE_CORE=off); core: the dense core's products as a")
+    print("screen: the first-order screen alone (threshold 1: no edge); sparse: every product by gathers")
+    print("(FASTMAC_DENSE_CORE=off); core: the dense core's products as a matrix product in float64 or")
+    print("float32 (the sampler's default, as FastMAC's torch code); core = its nodes; sgemm: numpy's")
     print(
-        "matrix product in float64 or float32 (the sampler's default, as FastMAC's torch code); "
-        "core = its nodes"
+        "(OpenBLAS) full float32 product of a core-sized matrix, its BLAS threads: a reference for the core"
     )
+
+
+def sgemm_ms(m: int, reps: int) -> float:
+    """Median ms of numpy's float32 m x m matrix product (the dense core's work done by OpenBLAS, in full)."""
+    a = np.random.default_rng(0).random((m, m), dtype=np.float32)
+    times = []
+    for _ in range(max(1, reps)):
+        t0 = time.perf_counter()
+        a @ a
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
 
 
 def bench_outdoor_large(args) -> None:
@@ -574,6 +591,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-dense", action="store_true")
     ap.add_argument("--no-outdoor", action="store_true", help="skip the outdoor section")
     ap.add_argument("--outdoor-only", action="store_true", help="only the outdoor section")
+    ap.add_argument(
+        "--products-only", action="store_true", help="only the sampler-graph table of the outdoor pairs"
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
     sizes = args.sizes or ([1000, 2500, 5000] if args.quick else [1000, 2500, 5000, 10000, 50000])
@@ -584,6 +604,9 @@ def main(argv: list[str] | None = None) -> int:
         print(cpp.BUILD_HINT.format(why="import failed"))
         return 1
     core = cpp.core()
+    if args.products_only:
+        bench_products([(name, corr) for name, corr, _ in outdoor_pairs(args.quick)], args)
+        return 0
     if args.outdoor_only:
         args.reps = args.reps or 3
         rows = bench_outdoor(args)

@@ -32,8 +32,8 @@ BUILD_HINT = (
 
 def _load_from(path: str) -> Any:
     """The extension from a file of the user's choosing (FASTMAC_CORE_SO), registered under its name."""
-    spec = importlib.util.spec_from_file_location(MODULE, path)
-    if spec is None or spec.loader is None or not os.path.isfile(path):
+    spec = importlib.util.spec_from_file_location(MODULE, path) if os.path.isfile(path) else None
+    if spec is None or spec.loader is None:
         raise ImportError(f"{CORE_ENV}={path}: not an extension module file")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -180,8 +180,9 @@ def test_rerun_per_run_recording(tmp_path, strict_rerun):
     # the pair's own stage times, describe left out, in STAGE_BARS order
     bars = _column(rrd, f"{a}/stage_ms", "BarChart:values")
     assert np.allclose(bars[0]["buffer"], [outcomes[0].row[f"t_{s}_ms"] for s in STAGE_BARS])
-    blueprints = __import__("rerun.chunk", fromlist=["RrdReader"]).RrdReader(rrd).blueprints()
-    assert len(blueprints) == 1  # the default layout travels in the file
+    from rerun.chunk import RrdReader
+
+    assert len(RrdReader(rrd).blueprints()) == 1  # the default layout travels in the file
 
 
 def test_rerun_lines_classes_and_hover_ids(tmp_path, strict_rerun):

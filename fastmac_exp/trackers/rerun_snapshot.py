@@ -28,7 +28,6 @@ from fastmac_exp.trackers.rerun_tracker import (  # noqa: E402
     INLIER,
     OUTLIER,
     SOURCE,
-    STYLES,
     TARGET,
     safe_name,
 )
@@ -178,12 +177,8 @@ def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
             drawn.append(p)
     _fit_axes(ax2, np.vstack(drawn) if drawn else np.zeros((0, 3)))
     ax2.set_title("registration: target, source before / estimated / GT")
-    handles = [
-        plt.Line2D([], [], color=_rgb(s), lw=3, label=s.label)
-        for s in STYLES
-        if s.id
-        in {INLIER.id, OUTLIER.id, CLIQUE.id, SOURCE.id, TARGET.id, BEFORE.id, ESTIMATE.id, GT_POSE.id}
-    ]
+    shown = (INLIER, OUTLIER, CLIQUE, SOURCE, TARGET, BEFORE, ESTIMATE, GT_POSE)
+    handles = [plt.Line2D([], [], color=_rgb(s), lw=3, label=s.label) for s in shown]
     fig.legend(handles=handles, loc="lower center", ncols=4, fontsize=8, frameon=False)
     fig.suptitle(title or geo.name)
     out = Path(out)

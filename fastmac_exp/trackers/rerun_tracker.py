@@ -82,6 +82,7 @@ BEFORE = Style(6, "source before registration", (150, 150, 150), "grey")
 ESTIMATE = Style(7, "source under the estimated pose", (255, 120, 0), "orange")
 GT_POSE = Style(8, "source under the GT pose", (170, 90, 255), "violet")
 STYLES = (UNLABELLED, INLIER, OUTLIER, CLIQUE, SOURCE, TARGET, BEFORE, ESTIMATE, GT_POSE)
+LABELS = {s.id: s.label for s in STYLES}
 
 STAGE_BARS = MAC_STAGES
 UP_AXES = {"+x": "RIGHT_HAND_X_UP", "-x": "RIGHT_HAND_X_DOWN", "+y": "RIGHT_HAND_Y_UP",
@@ -392,9 +393,8 @@ class RerunTracker(Tracker):
             radii = np.full(len(idx), radius, np.float32)
             if not clique:
                 radii[cls == OUTLIER.id] *= 0.4  # outliers thinner than inliers
-            names = {s.id: s.label for s in STYLES}
             tags = [
-                f"#{i} {names[c]}" + ("" if scores is None else f" score {float(scores[i]):.3g}")
+                f"#{i} {LABELS[c]}" + ("" if scores is None else f" score {float(scores[i]):.3g}")
                 for i, c in zip(idx.tolist(), classes[idx].tolist(), strict=True)
             ]
             static(
