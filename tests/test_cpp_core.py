@@ -102,16 +102,19 @@ def test_graph_edges_threads_agree_and_wrapper():
         np.testing.assert_array_equal(getattr(one, k), getattr(two, k))
 
 
+@pytest.mark.parametrize("kernel", ["quadratic", "gaussian"])
 @pytest.mark.parametrize("extent", [3.0, 80.0])
-def test_pair_screens_agree(monkeypatch, extent):
-    """The generic, AVX2 and AVX-512 screens (picked at run time) give exactly the same edges and scores."""
+def test_pair_screens_agree(monkeypatch, extent, kernel):
+    """The generic, AVX2 and AVX-512 screens and exact tests (picked at run time) give exactly the same
+    edges and scores (the AVX-512 test computes the weights eight lanes at a time)."""
     src, tgt, _, _ = clustered(700, 0.2, 0.01 * extent / 3, 8, extent=extent)
     tau = 0.1 * extent / 3
+    gp = (kernel, 0.02 * extent / 3, tau, 0.9)
     out, res = {}, {}
     for screen in ("generic", "avx2", "avx512"):
         monkeypatch.setenv("FASTMAC_SCREEN", screen)  # falls back where the CPU lacks the instructions
-        out[screen] = core.graph_edges(src, tgt, "quadratic", 0.06, tau, 0.9)
-        res[screen] = core.mac(src, tgt, "quadratic", 0.06, tau, 0.9, tau)  # residual screens too
+        out[screen] = core.graph_edges(src, tgt, *gp)
+        res[screen] = core.mac(src, tgt, *gp, tau)  # residual screens too
     assert len(out["generic"]["i"]) > 500
     for screen in ("avx2", "avx512"):
         for k in "ijwg":

@@ -1,60 +1,64 @@
-// Register-blocked tiles of the dense-core product (masked_square.cpp):
-//     c[t * ld + u] += sum_{r < kc} a[r * ld + t] * b[r * ld + u],   t < kMR, u < kNR<T>,
-// i.e. one kMR x kNR tile of D^T D from kc rows of D. One template body; each instruction set instantiates
-// it in its own translation unit, compiled for that set (dense_tiles_avx512.cpp, dense_tiles_avx2.cpp),
-// and masked_square.cpp picks one at run time. No standard-library templates are instantiated in those
-// units, so no code compiled for AVX-512 can be merged into code that runs on CPUs without it.
+// Micro-kernels of the dense-core product (masked_square.cpp), on packed operands as in BLIS (Van Zee and
+// van de Geijn, "BLIS: A Framework for Rapidly Instantiating BLAS Functionality", ACM TOMS 2015):
+//     c[t * ldc + u] += sum_{r < kc} a[r * MR + t] * b[r * NR + u],   t < MR, u < NR,
+// one MR x NR tile of D^T D from kc rows of D, where a is the packed micro-panel of D's columns i0..i0+MR-1
+// (MR values per row, contiguous) and b that of columns j0..j0+NR-1. The MR x NR accumulators stay in
+// vector registers; each row costs NR / lanes vector loads, MR broadcasts and MR * NR / lanes FMAs.
+//
+// One template body; each instruction set instantiates it in its own translation unit, compiled for that
+// set (dense_tiles_avx512.cpp, dense_tiles_avx2.cpp), and masked_square.cpp picks one at run time. No
+// standard-library templates are instantiated in those units, so no code compiled for AVX-512 can be
+// merged into code that runs on CPUs without it.
 #pragma once
 #include <cstdint>
 
 namespace fastmac::tiles {
 
-constexpr int64_t kMR = 8;
 template <class T>
-constexpr int64_t kNR = 128 / sizeof(T);  // two 64-byte vectors: 16 doubles or 32 floats
+using TileFn = void (*)(const T *a, const T *b, int64_t kc, T *c, int64_t ldc);
 
 template <class T>
-using TileFn = void (*)(const T *a, const T *b, int64_t kc, int64_t ld, T *c);
+struct Tile {
+    TileFn<T> fn = nullptr;
+    int64_t mr = 0, nr = 0;  // the tile's rows (broadcast operand) and columns (vector operand)
+};
 
 struct Kernels {
-    TileFn<double> d = nullptr;
-    TileFn<float> f = nullptr;
+    Tile<double> d;
+    Tile<float> f;
 };
 
 Kernels avx512_kernels();  // dense_tiles_avx512.cpp (x86-64 builds only)
 Kernels avx2_kernels();    // dense_tiles_avx2.cpp
 
-// The tile in slices of O::NV vectors of O::L lanes (kMR x NV accumulators): O provides the vector type V,
-// L, NV and zero / load / set1 / fma / add_to.
-template <class O>
-inline void tile_slices(const typename O::T *a, const typename O::T *b, int64_t kc, int64_t ld,
-                        typename O::T *c) {
-    using T = typename O::T;
+// The tile with MR x NV accumulators of O::L lanes: O provides the vector type V, L and zero / load /
+// set1 / fma / add_to.
+template <class O, int MR, int NV>
+inline void tile_packed(const typename O::T *a, const typename O::T *b, int64_t kc, typename O::T *c,
+                        int64_t ldc) {
     using V = typename O::V;
-    constexpr int64_t W = O::NV * O::L;
-    for (int64_t s = 0; s < kNR<T>; s += W) {
-        V acc[kMR][O::NV];
-#pragma GCC unroll 8
-        for (int t = 0; t < kMR; ++t)
+    constexpr int64_t NR = NV * O::L;
+    V acc[MR][NV];
+#pragma GCC unroll 16
+    for (int t = 0; t < MR; ++t)
 #pragma GCC unroll 4
-            for (int u = 0; u < O::NV; ++u) acc[t][u] = O::zero();
-        for (int64_t r = 0; r < kc; ++r) {
-            const T *ar = a + r * ld, *br = b + r * ld + s;
-            V bv[O::NV];
+        for (int u = 0; u < NV; ++u) acc[t][u] = O::zero();
+    for (int64_t r = 0; r < kc; ++r) {
+        const typename O::T *ar = a + r * MR, *br = b + r * NR;
+        V bv[NV];
 #pragma GCC unroll 4
-            for (int u = 0; u < O::NV; ++u) bv[u] = O::load(br + u * O::L);
-#pragma GCC unroll 8
-            for (int t = 0; t < kMR; ++t) {
-                const V x = O::set1(ar[t]);
+        for (int u = 0; u < NV; ++u) bv[u] = O::load(br + u * O::L);
+#pragma GCC unroll 16
+        for (int t = 0; t < MR; ++t) {
+            const V x = O::set1(ar[t]);
 #pragma GCC unroll 4
-                for (int u = 0; u < O::NV; ++u) acc[t][u] = O::fma(x, bv[u], acc[t][u]);
-            }
+            for (int u = 0; u < NV; ++u) acc[t][u] = O::fma(x, bv[u], acc[t][u]);
         }
-#pragma GCC unroll 8
-        for (int t = 0; t < kMR; ++t)
-#pragma GCC unroll 4
-            for (int u = 0; u < O::NV; ++u) O::add_to(c + t * ld + s + u * O::L, acc[t][u]);
     }
+#pragma GCC unroll 16
+    for (int t = 0; t < MR; ++t)
+#pragma GCC unroll 4
+        for (int u = 0; u < NV; ++u) O::add_to(c + t * ldc + u * O::L, acc[t][u]);
 }
 
 }  // namespace fastmac::tiles

@@ -1,5 +1,8 @@
 // First- and second-order compatibility graphs (spec 2.1-2.3) and the sampler signals (spec 7.2-7.3).
 #include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -75,7 +78,7 @@ struct ScreenData {
     float k1 = 0.f, k2 = 1e-11f;
 };
 
-// Writes to out (room for j1 - j0 entries) every j in [j0, j1) that passes the screen for row i, in
+// Writes to out (room for j1 - j0 + 16 entries) every j in [j0, j1) that passes the screen for row i, in
 // increasing order; returns how many.
 using ScreenFn = size_t (*)(const ScreenData &, int64_t, int64_t, int64_t, int32_t *);
 
@@ -149,6 +152,7 @@ __attribute__((target("avx512f"))) size_t screen_avx512(const ScreenData &S, int
     const __m512 k1 = _mm512_set1_ps(S.k1), k2 = _mm512_set1_ps(S.k2);
     const float *px = S.px.data(), *py = S.py.data(), *pz = S.pz.data();
     const float *qx = S.qx.data(), *qy = S.qy.data(), *qz = S.qz.data();
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     size_t cnt = 0;
     int64_t j = j0;
     for (; j + 16 <= j1; j += 16) {
@@ -164,11 +168,12 @@ __attribute__((target("avx512f"))) size_t screen_avx512(const ScreenData &S, int
                                         _mm512_mul_ps(bz, bz));
         const __m512 diff = _mm512_sub_ps(a2, b2), sum = _mm512_add_ps(a2, b2);
         const __m512 rhs = _mm512_mul_ps(sum, _mm512_add_ps(k1, _mm512_mul_ps(k2, sum)));
-        unsigned bits = _mm512_cmp_ps_mask(_mm512_mul_ps(diff, diff), rhs, _CMP_LE_OQ);
-        while (bits) {
-            out[cnt++] = (int32_t)(j + __builtin_ctz(bits));
-            bits &= bits - 1;
-        }
+        const __mmask16 bits = _mm512_cmp_ps_mask(_mm512_mul_ps(diff, diff), rhs, _CMP_LE_OQ);
+        // Branch free: the candidates' indices packed to the front of a vector, all 16 lanes stored (out has
+        // room for j1 - j0 + 16 entries).
+        const __m512i idx = _mm512_add_epi32(_mm512_set1_epi32((int)j), lane);
+        _mm512_storeu_si512(out + cnt, _mm512_maskz_compress_epi32(bits, idx));
+        cnt += (size_t)__builtin_popcount((unsigned)bits);
     }
     if (j < j1) cnt += screen_avx2(S, i, j, j1, out + cnt);
     return cnt;
@@ -187,9 +192,101 @@ ScreenFn pick_screen() {
     return screen_generic;
 }
 
+// The exact test of row i's candidates, in double as the reference computes it (norms of the differences,
+// then the kernel): writes the candidates j with W_ij >= threshold and their weights to col / w (room for
+// n_cand + 8 entries), in order; returns how many. The coordinates are the caller's doubles in SoA form.
+struct ExactData {
+    std::vector<double> sx, sy, sz, tx, ty, tz;
+};
+using TestFn = size_t (*)(const ExactData &, const GraphParams &, int64_t, const int32_t *, size_t, int32_t *,
+                          double *);
+
+size_t test_generic(const ExactData &E, const GraphParams &gp, int64_t i, const int32_t *cand, size_t n_cand,
+                    int32_t *col, double *w) {
+    const double pix = E.sx[i], piy = E.sy[i], piz = E.sz[i], qix = E.tx[i], qiy = E.ty[i], qiz = E.tz[i];
+    const double thr = gp.threshold;
+    size_t cnt = 0;
+    for (size_t c = 0; c < n_cand; ++c) {
+        const int32_t j = cand[c];
+        const double ax = pix - E.sx[j], ay = piy - E.sy[j], az = piz - E.sz[j];
+        const double bx = qix - E.tx[j], by = qiy - E.ty[j], bz = qiz - E.tz[j];
+        const double dp = std::sqrt(ax * ax + ay * ay + az * az);
+        const double dq = std::sqrt(bx * bx + by * by + bz * bz);
+        const double v = kernel_value(std::fabs(dp - dq), gp);
+        if (v >= thr) {
+            col[cnt] = j;
+            w[cnt++] = v;
+        }
+    }
+    return cnt;
+}
+
+#ifdef FASTMAC_HAVE_AVX2_KERNEL
+// Eight candidates per step: the same operations in the same order, lane by lane (IEEE sqrt and division
+// are exactly rounded, no FMA), so the weights are bit-identical to test_generic's. The Gaussian's exp
+// runs per lane in scalar code.
+__attribute__((target("avx512f"))) size_t test_avx512(const ExactData &E, const GraphParams &gp, int64_t i,
+                                                     const int32_t *cand, size_t n_cand, int32_t *col,
+                                                     double *w) {
+    const __m512d pix = _mm512_set1_pd(E.sx[i]), piy = _mm512_set1_pd(E.sy[i]), piz = _mm512_set1_pd(E.sz[i]);
+    const __m512d qix = _mm512_set1_pd(E.tx[i]), qiy = _mm512_set1_pd(E.ty[i]), qiz = _mm512_set1_pd(E.tz[i]);
+    const __m512d thr = _mm512_set1_pd(gp.threshold), one = _mm512_set1_pd(1.0);
+    const __m512d tau2 = _mm512_set1_pd(gp.tau * gp.tau);
+    const __m512i sign = _mm512_set1_epi64(0x7fffffffffffffffLL);
+    const bool quadratic = gp.kernel == Kernel::Quadratic;
+    size_t cnt = 0;
+    for (size_t c = 0; c < n_cand; c += 8) {
+        const __mmask8 live = n_cand - c >= 8 ? (__mmask8)0xff : (__mmask8)((1u << (n_cand - c)) - 1u);
+        alignas(32) int32_t tail[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+        const int32_t *ip = cand + c;
+        if (live != 0xff) {
+            for (size_t t = 0; t < n_cand - c; ++t) tail[t] = cand[c + t];
+            ip = tail;
+        }
+        const __m256i idx = _mm256_loadu_si256((const __m256i *)ip);
+        const __m512d zero = _mm512_setzero_pd();
+#define FASTMAC_GATHER(v) _mm512_mask_i32gather_pd(zero, live, idx, (v).data(), 8)
+        const __m512d ax = _mm512_sub_pd(pix, FASTMAC_GATHER(E.sx)), ay = _mm512_sub_pd(piy, FASTMAC_GATHER(E.sy)),
+                      az = _mm512_sub_pd(piz, FASTMAC_GATHER(E.sz));
+        const __m512d bx = _mm512_sub_pd(qix, FASTMAC_GATHER(E.tx)), by = _mm512_sub_pd(qiy, FASTMAC_GATHER(E.ty)),
+                      bz = _mm512_sub_pd(qiz, FASTMAC_GATHER(E.tz));
+#undef FASTMAC_GATHER
+        const __m512d dp = _mm512_sqrt_pd(
+            _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ax, ax), _mm512_mul_pd(ay, ay)), _mm512_mul_pd(az, az)));
+        const __m512d dq = _mm512_sqrt_pd(
+            _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(bx, bx), _mm512_mul_pd(by, by)), _mm512_mul_pd(bz, bz)));
+        const __m512d d = _mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(_mm512_sub_pd(dp, dq)), sign));
+        __m512d v;
+        if (quadratic) {
+            v = _mm512_sub_pd(one, _mm512_div_pd(_mm512_mul_pd(d, d), tau2));
+        } else {
+            alignas(64) double dl[8];
+            _mm512_store_pd(dl, d);
+            for (int t = 0; t < 8; ++t) dl[t] = kernel_value(dl[t], gp);
+            v = _mm512_load_pd(dl);
+        }
+        const __mmask8 keep = _mm512_mask_cmp_pd_mask(live, v, thr, _CMP_GE_OQ);
+        _mm256_storeu_si256((__m256i *)(col + cnt), _mm512_castsi512_si256(_mm512_maskz_compress_epi32(
+                                                         (__mmask16)keep, _mm512_castsi256_si512(idx))));
+        _mm512_storeu_pd(w + cnt, _mm512_maskz_compress_pd(keep, v));
+        cnt += (size_t)__builtin_popcount((unsigned)keep);
+    }
+    return cnt;
+}
+#endif
+
+TestFn pick_test() {
+#ifdef FASTMAC_HAVE_AVX2_KERNEL
+    if (const char *env = std::getenv("FASTMAC_SCREEN"); env && std::string(env) != "avx512") return test_generic;
+    if (__builtin_cpu_supports("avx512f")) return test_avx512;
+#endif
+    return test_generic;
+}
+
 }  // namespace
 
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
+    const auto tf_start = std::chrono::steady_clock::now();
     check_params(gp);
     nthreads = resolve_threads(nthreads, n);
     Csr W;
@@ -228,69 +325,73 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     const double lim = (m + 1e-5 * rmax) * (1.0 + 1e-6);
     S.k1 = (float)(2.02 * lim * lim * (1.0 + 1e-5));
     const ScreenFn screen = pick_screen();
-    const double thr = gp.threshold;
+    const TestFn test = pick_test();
+    ExactData E;
+    for (auto *v : {&E.sx, &E.sy, &E.sz, &E.tx, &E.ty, &E.tz}) v->resize(n);
+    for (int64_t i = 0; i < n; ++i) {
+        E.sx[i] = src[3 * i], E.sy[i] = src[3 * i + 1], E.sz[i] = src[3 * i + 2];
+        E.tx[i] = tgt[3 * i], E.ty[i] = tgt[3 * i + 1], E.tz[i] = tgt[3 * i + 2];
+    }
 
-    // Upper-triangle neighbours of each row, found in parallel; each thread appends its rows to its own
-    // buffers (no allocation per row).
+    // Each row in full (neighbours j < i, then j > i), found in parallel; each thread appends its rows to
+    // its own buffers (no allocation per row). Rows i and j compute W_ij from the same differences up to
+    // sign (a - b = -(b - a) exactly), so the matrix is symmetric bit for bit, and no transpose is needed.
     struct Part {
         std::vector<int32_t> col;
         std::vector<double> w;
+        size_t size = 0;
     };
     std::vector<Part> parts(nthreads);
     std::vector<int32_t> row_tid(n, 0);
-    std::vector<int64_t> row_off(n, 0), row_len(n, 0);
-    DynamicRange rows(0, n - 1, 16);
+    std::vector<int64_t> row_off(n, 0), row_len(n, 0), nlow(n, 0);
+    const auto tf0 = std::chrono::steady_clock::now();
+    std::atomic<int64_t> n_cand_total{0};
+    DynamicRange rows(0, n, 16);
     parallel_region(nthreads, [&](int tid) {
         Part &part = parts[tid];
-        std::vector<int32_t> buf(n);
+        std::vector<int32_t> buf(n + 32);
         int64_t lo, hi;
         while (rows.next(lo, hi))
             for (int64_t i = lo; i < hi; ++i) {
-                const size_t n_cand = screen(S, i, i + 1, n, buf.data());
-                row_tid[i] = tid;
-                row_off[i] = (int64_t)part.col.size();
-                const double *pi = src + 3 * i, *qi = tgt + 3 * i;
-                for (size_t c = 0; c < n_cand; ++c) {
-                    const int32_t j = buf[c];
-                    // Exact test, as the reference computes it: norms of the differences, in double.
-                    const double *pj = src + 3 * (int64_t)j, *qj = tgt + 3 * (int64_t)j;
-                    const double ax = pi[0] - pj[0], ay = pi[1] - pj[1], az = pi[2] - pj[2];
-                    const double bx = qi[0] - qj[0], by = qi[1] - qj[1], bz = qi[2] - qj[2];
-                    const double dp = std::sqrt(ax * ax + ay * ay + az * az);
-                    const double dq = std::sqrt(bx * bx + by * by + bz * bz);
-                    const double s = kernel_value(std::fabs(dp - dq), gp);
-                    if (s >= thr) {
-                        part.col.push_back(j);
-                        part.w.push_back(s);
-                    }
+                if (part.col.size() < part.size + (size_t)n + 16) {
+                    const size_t cap = std::max(2 * part.col.size(), part.size + (size_t)n + 16);
+                    part.col.resize(cap);
+                    part.w.resize(cap);
                 }
-                row_len[i] = (int64_t)part.col.size() - row_off[i];
+                int32_t *col = part.col.data() + part.size;
+                double *w = part.w.data() + part.size;
+                const size_t n_low = screen(S, i, 0, i, buf.data());
+                const size_t n_cand = n_low + screen(S, i, i + 1, n, buf.data() + n_low);
+                n_cand_total += (int64_t)n_cand;
+                const size_t kept_low = test(E, gp, i, buf.data(), n_low, col, w);
+                const size_t kept =
+                    kept_low + test(E, gp, i, buf.data() + n_low, n_cand - n_low, col + kept_low, w + kept_low);
+                row_tid[i] = tid;
+                row_off[i] = (int64_t)part.size;
+                row_len[i] = (int64_t)kept;
+                nlow[i] = (int64_t)kept_low;
+                part.size += kept;
             }
     });
+    const auto tf1 = std::chrono::steady_clock::now();
 
-    // Assemble the symmetric CSR: row i = [neighbours j < i ascending | neighbours j > i ascending].
-    std::vector<int64_t> nlow(n, 0);
+    // The CSR: row i = [neighbours j < i ascending | neighbours j > i ascending], copied in parallel.
     for (int64_t i = 0; i < n; ++i) {
-        const int32_t *c = parts[row_tid[i]].col.data() + row_off[i];
-        for (int64_t k = 0; k < row_len[i]; ++k) ++nlow[c[k]];
+        W.ptr[i + 1] = W.ptr[i] + row_len[i];
+        W.upper[i] = W.ptr[i] + nlow[i];
     }
-    for (int64_t i = 0; i < n; ++i) W.ptr[i + 1] = W.ptr[i] + nlow[i] + row_len[i];
     W.col.resize(W.ptr[n]);
     W.w.resize(W.ptr[n]);
-    std::vector<int64_t> cursor(W.ptr.begin(), W.ptr.end() - 1);
-    for (int64_t i = 0; i < n; ++i) {
-        W.upper[i] = W.ptr[i] + nlow[i];
-        // cursor[i] == W.upper[i] here: all lower neighbours of i (rows < i) are already placed.
-        const int64_t base = W.upper[i];
-        const int32_t *c = parts[row_tid[i]].col.data() + row_off[i];
-        const double *ws = parts[row_tid[i]].w.data() + row_off[i];
-        for (int64_t k = 0; k < row_len[i]; ++k) {
-            W.col[base + k] = c[k];
-            W.w[base + k] = ws[k];
-            const int64_t p = cursor[c[k]]++;
-            W.col[p] = (int32_t)i;
-            W.w[p] = ws[k];
-        }
+    parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
+        const Part &part = parts[row_tid[i]];
+        std::memcpy(W.col.data() + W.ptr[i], part.col.data() + row_off[i], row_len[i] * sizeof(int32_t));
+        std::memcpy(W.w.data() + W.ptr[i], part.w.data() + row_off[i], row_len[i] * sizeof(double));
+    });
+    if (std::getenv("FASTMAC_PROFILE")) {
+        const auto tf2 = std::chrono::steady_clock::now();
+        auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+        std::fprintf(stderr, "first_order: prep %.2f screen+test %.2f assemble %.2f candidates %lld edges %lld\n",
+                     ms(tf_start, tf0), ms(tf0, tf1), ms(tf1, tf2), (long long)n_cand_total.load(), (long long)W.n_edges());
     }
     return W;
 }

@@ -36,6 +36,15 @@ constexpr int64_t kSerialBelow = 1500;
 int resolve_threads(int num_threads, int64_t n = -1);
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
 
+// Called once when the module loads (glibc only; FASTMAC_MALLOC_TUNE=0 skips it): large blocks come from
+// the heap and freed memory stays mapped (mallopt M_MMAP_THRESHOLD 256 MiB, M_TRIM_THRESHOLD 512 MiB), so
+// a call reuses the pages of the previous one. Each call on an outdoor pair allocates and frees ~35 MB
+// (edge lists, products); with glibc's defaults these went back to the kernel and came back as ~9,000
+// page faults per call, each ~1.7 us in a VM (a fault exits to the hypervisor): ~15 ms of a ~60 ms
+// sampler graph (measured on KITTI 95->94). The cost: the process keeps up to 512 MiB of freed memory
+// mapped instead of returning it. Returns whether the setting took effect.
+bool keep_freed_memory();
+
 // ---------------------------------------------------------------------------------------------
 // Graphs
 

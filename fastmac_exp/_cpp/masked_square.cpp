@@ -20,10 +20,17 @@
 // relative difference of ~1e-15. FASTMAC_DENSE_CORE=off forces the all-sparse path, FASTMAC_GEMM=avx512 |
 // avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has).
 #include <algorithm>
+#include <chrono>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <memory>
+#include <new>
 #include <numeric>
 #include <string>
+#include <utility>
+
+#include <sys/mman.h>
 
 #include "dense_tiles.hpp"
 #include "mac_core.hpp"
@@ -33,24 +40,71 @@ namespace fastmac {
 
 namespace {
 
-using tiles::kMR;
-using tiles::kNR;
-constexpr int64_t kKC = 64;     // rows of D per pass over a panel (the panel stays in L2)
-constexpr int64_t kSuper = 64;  // P rows one thread takes at a time (B tiles reused from L1)
+constexpr int64_t kL2Bytes = 384 * 1024;  // the packed B block kept in L2 (kc x nc)
+constexpr int64_t kSuper = 64;  // core rows one thread takes at a time in the pass over the nodes outside K
 
+double g_alloc = 0, g_pack = 0, g_gemm = 0, g_out = 0;
+
+// A zeroed array. Large ones are mapped directly and marked for transparent huge pages: a fresh 4 KiB
+// page costs a fault (~1.7 us measured in a VM, where faults exit to the hypervisor), which for the ~20 MB
+// of packed operands and products of an outdoor pair added ~10 ms per call; with 2 MiB pages there are a
+// few dozen faults. Where huge pages are off (transparent_hugepage=never) the advice is ignored.
 template <class T>
-void tile_generic(const T *a, const T *b, int64_t kc, int64_t ld, T *c) {
-    T acc[kMR][kNR<T>] = {};
-    for (int64_t r = 0; r < kc; ++r) {
-        const T *ar = a + r * ld, *br = b + r * ld;
-        for (int64_t t = 0; t < kMR; ++t) {
-            const T x = ar[t];
-            if (x == 0) continue;
-            for (int64_t u = 0; u < kNR<T>; ++u) acc[t][u] += x * br[u];
+class ZeroArray {
+  public:
+    ZeroArray() = default;
+    explicit ZeroArray(size_t n) : bytes_(std::max<size_t>(n, 1) * sizeof(T)) {
+        if (bytes_ >= kMapBytes) {
+            void *p = mmap(nullptr, bytes_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+            if (p == MAP_FAILED) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+            madvise(p, bytes_, MADV_HUGEPAGE);
+#endif
+            p_ = static_cast<T *>(p);
+            mapped_ = true;
+        } else {
+            p_ = static_cast<T *>(std::calloc(bytes_ / sizeof(T), sizeof(T)));
+            if (!p_) throw std::bad_alloc();
         }
     }
-    for (int64_t t = 0; t < kMR; ++t)
-        for (int64_t u = 0; u < kNR<T>; ++u) c[t * ld + u] += acc[t][u];
+    ZeroArray(ZeroArray &&o) noexcept : p_(o.p_), bytes_(o.bytes_), mapped_(o.mapped_) { o.p_ = nullptr; }
+    ZeroArray &operator=(ZeroArray &&o) noexcept {
+        std::swap(p_, o.p_);
+        std::swap(bytes_, o.bytes_);
+        std::swap(mapped_, o.mapped_);
+        return *this;
+    }
+    ZeroArray(const ZeroArray &) = delete;
+    ZeroArray &operator=(const ZeroArray &) = delete;
+    ~ZeroArray() {
+        if (!p_) return;
+        if (mapped_) munmap(p_, bytes_);
+        else std::free(p_);
+    }
+    T *data() { return p_; }
+    const T *data() const { return p_; }
+    T &operator[](size_t i) { return p_[i]; }
+    const T &operator[](size_t i) const { return p_[i]; }
+
+  private:
+    static constexpr size_t kMapBytes = 4u << 20;
+    T *p_ = nullptr;
+    size_t bytes_ = 0;
+    bool mapped_ = false;
+};
+
+constexpr int64_t kGenericMR = 4, kGenericNR = 8;
+
+template <class T>
+void tile_generic(const T *a, const T *b, int64_t kc, T *c, int64_t ldc) {
+    T acc[kGenericMR][kGenericNR] = {};
+    for (int64_t r = 0; r < kc; ++r) {
+        const T *ar = a + r * kGenericMR, *br = b + r * kGenericNR;
+        for (int64_t t = 0; t < kGenericMR; ++t)
+            for (int64_t u = 0; u < kGenericNR; ++u) acc[t][u] += ar[t] * br[u];
+    }
+    for (int64_t t = 0; t < kGenericMR; ++t)
+        for (int64_t u = 0; u < kGenericNR; ++u) c[t * ldc + u] += acc[t][u];
 }
 
 tiles::Kernels pick_kernels() {
@@ -62,11 +116,11 @@ tiles::Kernels pick_kernels() {
         if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return tiles::avx2_kernels();
 #endif
     }
-    return {tile_generic<double>, tile_generic<float>};
+    return {{tile_generic<double>, kGenericMR, kGenericNR}, {tile_generic<float>, kGenericMR, kGenericNR}};
 }
 
 template <class T>
-tiles::TileFn<T> pick_tile() {
+tiles::Tile<T> pick_tile() {
     const tiles::Kernels k = pick_kernels();
     if constexpr (sizeof(T) == sizeof(double)) return k.d;
     else return k.f;
@@ -115,38 +169,81 @@ Core find_core(const Csr &V) {
     return core;
 }
 
-// P (m x ld, upper tiles) = sum over all k of V_ka V_kb for core nodes a, b, in T arithmetic.
+// P (m x ld, the tiles that hold entries a < b) = sum over all k of V_ka V_kb for core nodes a, b, in T
+// arithmetic. ld: the row stride of P, a multiple of the tile's columns (tile.nr).
 template <class T>
-std::vector<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core, int64_t ld,
-                             int nthreads) {
+ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
+                             const tiles::Tile<T> &tile, int64_t ld, int nthreads) {
     const int64_t m = core.m, nk = (int64_t)core.rows.size();
-    const int64_t mp = (m + kMR - 1) / kMR * kMR;  // rows of P, padded to whole tiles
-    std::vector<T> D((size_t)nk * ld, T(0)), P((size_t)mp * ld, T(0));
+    const auto tq0 = std::chrono::steady_clock::now();
+    const int64_t mr = tile.mr, nr = tile.nr;
+    const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
+    // D = V[K, C] packed twice, straight from the sparse rows: A[ip][r][t] = D[r][ip * mr + t] (the
+    // broadcast operand) and B[jp][r][u] = D[r][jp * nr + u] (the vector operand).
+    ZeroArray<T> A((size_t)n_ip * nk * mr), B((size_t)n_jp * nk * nr), P((size_t)n_ip * mr * ld);
+    const auto tq1 = std::chrono::steady_clock::now();
     std::vector<uint8_t> in_rows(V.n, 0);
-    for (int64_t r = 0; r < nk; ++r) {
-        const int32_t k = core.rows[r];
-        in_rows[k] = 1;
-        T *dr = D.data() + r * ld;
-        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
-            if (core.pos[V.col[p]] >= 0) dr[core.pos[V.col[p]]] = (T)vals[p];
-    }
-    const tiles::TileFn<T> tile = pick_tile<T>();
-    constexpr int64_t nr = kNR<T>;
-    // D's rows are padded to ld; the A operand reads columns i0..i0+7 < mp <= ld.
-    DynamicRange supers(0, (mp + kSuper - 1) / kSuper, 1);
+    for (int32_t k : core.rows) in_rows[k] = 1;
+    // A chunk of rows at a time: scattered into a dense block (rows of ld entries, cache-local writes),
+    // then copied panel by panel (contiguous runs of mr or nr entries).
+    constexpr int64_t kChunk = 32;
+    DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
     parallel_region(nthreads, [&](int) {
+        std::vector<T> dense((size_t)kChunk * ld, T(0));
         int64_t lo, hi;
-        while (supers.next(lo, hi)) {
-            const int64_t r0 = lo * kSuper, r1 = std::min(mp, r0 + kSuper);
-            for (int64_t k0 = 0; k0 < nk; k0 += kKC) {
-                const int64_t kc = std::min(kKC, nk - k0);
-                const T *panel = D.data() + k0 * ld;
-                for (int64_t j0 = r0 / nr * nr; j0 < ld; j0 += nr)
-                    for (int64_t i0 = r0; i0 < r1 && i0 < j0 + nr; i0 += kMR)
-                        tile(panel + i0, panel + j0, kc, ld, P.data() + i0 * ld + j0);
+        while (chunks.next(lo, hi)) {
+            const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
+            for (int64_t r = r0; r < r1; ++r) {
+                const int32_t k = core.rows[r];
+                T *dr = dense.data() + (r - r0) * ld;
+                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
+                    const int64_t c = core.pos[V.col[p]];
+                    if (c >= 0) dr[c] = (T)vals[p];
+                }
             }
+            for (int64_t ip = 0; ip < n_ip; ++ip) {
+                const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
+                T *dst = A.data() + ((size_t)ip * nk + r0) * mr;
+                for (int64_t r = r0; r < r1; ++r, dst += mr)
+                    std::memcpy(dst, dense.data() + (r - r0) * ld + c0, (size_t)w * sizeof(T));
+            }
+            for (int64_t jp = 0; jp < n_jp; ++jp) {
+                T *dst = B.data() + ((size_t)jp * nk + r0) * nr;
+                for (int64_t r = r0; r < r1; ++r, dst += nr)
+                    std::memcpy(dst, dense.data() + (r - r0) * ld + jp * nr, (size_t)nr * sizeof(T));
+            }
+            std::fill(dense.begin(), dense.end(), T(0));
         }
     });
+    g_alloc = std::chrono::duration<double, std::milli>(tq1 - tq0).count();
+    const auto tp0 = std::chrono::steady_clock::now();
+    // Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
+    // L2 while the threads run over the row panels of P; for each row panel its A micro-panel (kc x mr)
+    // stays in L1 across the block's column panels. Without the column blocking every row panel would
+    // stream all of B from L3, which bounds the product by L3 bandwidth (shared by the threads).
+    const int64_t kc_max = std::min<int64_t>(nk, 256);
+    const int64_t nc_panels = std::max<int64_t>(1, kL2Bytes / (kc_max * nr * (int64_t)sizeof(T)));
+    for (int64_t jc = 0; jc < n_jp; jc += nc_panels) {
+        const int64_t jc_end = std::min(n_jp, jc + nc_panels);
+        // row panels with some entry i < j in these columns
+        const int64_t ip_end = std::min(n_ip, (jc_end * nr - 1 + mr - 1) / mr);
+        for (int64_t k0 = 0; k0 < nk; k0 += kc_max) {
+            const int64_t kc = std::min(kc_max, nk - k0);
+            DynamicRange panels(0, ip_end, 1);
+            parallel_region(nthreads, [&](int) {
+                int64_t ip, hi;
+                while (panels.next(ip, hi)) {
+                    const int64_t i0 = ip * mr;
+                    const T *ap = A.data() + ((size_t)ip * nk + k0) * mr;
+                    for (int64_t jp = std::max(jc, i0 / nr); jp < jc_end; ++jp)
+                        tile.fn(ap, B.data() + ((size_t)jp * nk + k0) * nr, kc, P.data() + (size_t)i0 * ld + jp * nr,
+                                ld);
+                }
+            });
+        }
+    }
+    const auto tp1 = std::chrono::steady_clock::now();
+    g_pack = std::chrono::duration<double, std::milli>(tp0 - tq0).count(); g_gemm = std::chrono::duration<double, std::milli>(tp1 - tp0).count();
     // The nodes outside K: each pair of their core neighbours, a < b (a thread owns a range of rows a).
     std::vector<int64_t> nb_ptr{0};
     std::vector<int32_t> nb_a;
@@ -190,6 +287,7 @@ std::vector<T> core_products(const Csr &V, const std::vector<double> &vals, cons
             }
         });
     }
+    g_out = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - tp1).count();
     return P;
 }
 
@@ -204,18 +302,26 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     auto deg = [&](int64_t i) { return ptr[i + 1] - ptr[i]; };
     // The work is ~ sum over edges of the smaller degree: serial only for small graphs.
     nthreads = resolve_threads(nthreads, std::max<int64_t>(n, V.nnz() / 16));
+    const auto t_start = std::chrono::steady_clock::now();
     const Core core = find_core(V);
     if (core_size) *core_size = core.m;
+    const auto t_core = std::chrono::steady_clock::now();
     // P in double, or in float (the sampler's graph, as the reference computes it: spec 7.2)
-    std::vector<double> Pd;
-    std::vector<float> Pf;
+    ZeroArray<double> Pd;
+    ZeroArray<float> Pf;
     int64_t ld = 0;
     if (core.m > 0) {
-        const int64_t nr = single ? kNR<float> : kNR<double>;
-        ld = (core.m + nr - 1) / nr * nr;
-        if (single) Pf = core_products<float>(V, vals, core, ld, nthreads);
-        else Pd = core_products<double>(V, vals, core, ld, nthreads);
+        if (single) {
+            const tiles::Tile<float> tile = pick_tile<float>();
+            ld = (core.m + tile.nr - 1) / tile.nr * tile.nr;
+            Pf = core_products<float>(V, vals, core, tile, ld, nthreads);
+        } else {
+            const tiles::Tile<double> tile = pick_tile<double>();
+            ld = (core.m + tile.nr - 1) / tile.nr * tile.nr;
+            Pd = core_products<double>(V, vals, core, tile, ld, nthreads);
+        }
     }
+    const auto t_prod = std::chrono::steady_clock::now();
     const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b
         return single ? (double)Pf[a * ld + b] : Pd[a * ld + b];
     };
@@ -278,6 +384,13 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
             if (done[p]) S[q] = S[p];
             else S[p] = S[q];
         }
+    if (std::getenv("FASTMAC_PROFILE")) {
+        const auto t_end = std::chrono::steady_clock::now();
+        auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+        std::fprintf(stderr, "masked_square n=%lld nnz=%lld core=%lld rows=%lld: find_core %.2f products %.2f rest %.2f ms | alloc %.2f pack %.2f gemm %.2f outside %.2f\n",
+                     (long long)n, (long long)V.nnz(), (long long)core.m, (long long)core.rows.size(),
+                     ms(t_start, t_core), ms(t_core, t_prod), ms(t_prod, t_end), g_alloc, g_pack, g_gemm, g_out);
+    }
     return S;
 }
 
