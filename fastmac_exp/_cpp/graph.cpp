@@ -333,9 +333,8 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         E.tx[i] = tgt[3 * i], E.ty[i] = tgt[3 * i + 1], E.tz[i] = tgt[3 * i + 2];
     }
 
-    // Each row in full (neighbours j < i, then j > i), found in parallel; each thread appends its rows to
-    // its own buffers (no allocation per row). Rows i and j compute W_ij from the same differences up to
-    // sign (a - b = -(b - a) exactly), so the matrix is symmetric bit for bit, and no transpose is needed.
+    // The upper part of each row (neighbours j > i), found in parallel; each thread appends its rows to its
+    // own buffers (no allocation per row).
     struct Part {
         std::vector<int32_t> col;
         std::vector<double> w;
@@ -343,7 +342,7 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     };
     std::vector<Part> parts(nthreads);
     std::vector<int32_t> row_tid(n, 0);
-    std::vector<int64_t> row_off(n, 0), row_len(n, 0), nlow(n, 0);
+    std::vector<int64_t> row_off(n, 0), row_len(n, 0);
     const auto tf0 = std::chrono::steady_clock::now();
     std::atomic<int64_t> n_cand_total{0};
     DynamicRange rows(0, n, 16);
@@ -353,39 +352,62 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         int64_t lo, hi;
         while (rows.next(lo, hi))
             for (int64_t i = lo; i < hi; ++i) {
-                if (part.col.size() < part.size + (size_t)n + 16) {
-                    const size_t cap = std::max(2 * part.col.size(), part.size + (size_t)n + 16);
+                if (part.col.size() < part.size + (size_t)(n - i) + 16) {
+                    const size_t cap = std::max(2 * part.col.size(), part.size + (size_t)(n - i) + 16);
                     part.col.resize(cap);
                     part.w.resize(cap);
                 }
-                int32_t *col = part.col.data() + part.size;
-                double *w = part.w.data() + part.size;
-                const size_t n_low = screen(S, i, 0, i, buf.data());
-                const size_t n_cand = n_low + screen(S, i, i + 1, n, buf.data() + n_low);
+                const size_t n_cand = screen(S, i, i + 1, n, buf.data());
                 n_cand_total += (int64_t)n_cand;
-                const size_t kept_low = test(E, gp, i, buf.data(), n_low, col, w);
-                const size_t kept =
-                    kept_low + test(E, gp, i, buf.data() + n_low, n_cand - n_low, col + kept_low, w + kept_low);
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.size;
-                row_len[i] = (int64_t)kept;
-                nlow[i] = (int64_t)kept_low;
-                part.size += kept;
+                row_len[i] = (int64_t)test(E, gp, i, buf.data(), n_cand, part.col.data() + part.size,
+                                           part.w.data() + part.size);
+                part.size += (size_t)row_len[i];
             }
     });
     const auto tf1 = std::chrono::steady_clock::now();
 
-    // The CSR: row i = [neighbours j < i ascending | neighbours j > i ascending], copied in parallel.
+    // The symmetric CSR: row i = [neighbours j < i ascending | neighbours j > i ascending]. The lower parts
+    // are the transpose of the upper ones: a thread fills a block of rows j, taking from every row i < j
+    // the stretch of its upper part that falls in the block (rows i in increasing order, so each lower
+    // part comes out sorted).
+    std::vector<int64_t> nlow(n, 0);
     for (int64_t i = 0; i < n; ++i) {
-        W.ptr[i + 1] = W.ptr[i] + row_len[i];
+        const int32_t *c = parts[row_tid[i]].col.data() + row_off[i];
+        for (int64_t k = 0; k < row_len[i]; ++k) ++nlow[c[k]];
+    }
+    for (int64_t i = 0; i < n; ++i) {
+        W.ptr[i + 1] = W.ptr[i] + nlow[i] + row_len[i];
         W.upper[i] = W.ptr[i] + nlow[i];
     }
     W.col.resize(W.ptr[n]);
     W.w.resize(W.ptr[n]);
-    parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
-        const Part &part = parts[row_tid[i]];
-        std::memcpy(W.col.data() + W.ptr[i], part.col.data() + row_off[i], row_len[i] * sizeof(int32_t));
-        std::memcpy(W.w.data() + W.ptr[i], part.w.data() + row_off[i], row_len[i] * sizeof(double));
+    const int64_t block = std::max<int64_t>(64, (n + 8 * nthreads - 1) / (8 * nthreads));
+    DynamicRange blocks(0, (n + block - 1) / block, 1);
+    parallel_region(nthreads, [&](int) {
+        std::vector<int64_t> cursor(block);
+        int64_t lo, hi;
+        while (blocks.next(lo, hi)) {
+            const int64_t r0 = lo * block, r1 = std::min(n, r0 + block);
+            for (int64_t j = r0; j < r1; ++j) cursor[j - r0] = W.ptr[j];
+            for (int64_t i = 0; i < r1 - 1; ++i) {
+                const Part &part = parts[row_tid[i]];
+                const int32_t *c0 = part.col.data() + row_off[i], *c1 = c0 + row_len[i];
+                const int32_t *c = i + 1 >= r0 ? c0 : std::lower_bound(c0, c1, (int32_t)r0);
+                const double *w = part.w.data() + (c - part.col.data());
+                for (; c < c1 && *c < r1; ++c, ++w) {
+                    const int64_t q = cursor[*c - r0]++;
+                    W.col[q] = (int32_t)i;
+                    W.w[q] = *w;
+                }
+            }
+            for (int64_t j = r0; j < r1; ++j) {  // and the upper parts of the block's own rows
+                const Part &part = parts[row_tid[j]];
+                std::memcpy(W.col.data() + W.upper[j], part.col.data() + row_off[j], row_len[j] * sizeof(int32_t));
+                std::memcpy(W.w.data() + W.upper[j], part.w.data() + row_off[j], row_len[j] * sizeof(double));
+            }
+        }
     });
     if (std::getenv("FASTMAC_PROFILE")) {
         const auto tf2 = std::chrono::steady_clock::now();

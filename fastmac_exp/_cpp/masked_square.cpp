@@ -20,6 +20,7 @@
 // relative difference of ~1e-15. FASTMAC_DENSE_CORE=off forces the all-sparse path, FASTMAC_GEMM=avx512 |
 // avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has).
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -218,31 +219,51 @@ ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const 
     g_alloc = std::chrono::duration<double, std::milli>(tq1 - tq0).count();
     const auto tp0 = std::chrono::steady_clock::now();
     // Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
-    // L2 while the threads run over the row panels of P; for each row panel its A micro-panel (kc x mr)
-    // stays in L1 across the block's column panels. Without the column blocking every row panel would
-    // stream all of B from L3, which bounds the product by L3 bandwidth (shared by the threads).
+    // L2 while a thread runs over its row panels of P; for each row panel the A micro-panel (kc x mr) stays
+    // in L1 across the block's column panels. Threads take groups of consecutive row panels of about equal
+    // work (one parallel region: waking a worker costs more in a VM than a short region gains) and run
+    // each group in the blocked order; a group owns its rows of P, so no tile is shared.
     const int64_t kc_max = std::min<int64_t>(nk, 256);
     const int64_t nc_panels = std::max<int64_t>(1, kL2Bytes / (kc_max * nr * (int64_t)sizeof(T)));
-    for (int64_t jc = 0; jc < n_jp; jc += nc_panels) {
-        const int64_t jc_end = std::min(n_jp, jc + nc_panels);
-        // row panels with some entry i < j in these columns
-        const int64_t ip_end = std::min(n_ip, (jc_end * nr - 1 + mr - 1) / mr);
-        for (int64_t k0 = 0; k0 < nk; k0 += kc_max) {
-            const int64_t kc = std::min(kc_max, nk - k0);
-            DynamicRange panels(0, ip_end, 1);
-            parallel_region(nthreads, [&](int) {
-                int64_t ip, hi;
-                while (panels.next(ip, hi)) {
-                    const int64_t i0 = ip * mr;
-                    const T *ap = A.data() + ((size_t)ip * nk + k0) * mr;
-                    for (int64_t jp = std::max(jc, i0 / nr); jp < jc_end; ++jp)
-                        tile.fn(ap, B.data() + ((size_t)jp * nk + k0) * nr, kc, P.data() + (size_t)i0 * ld + jp * nr,
-                                ld);
-                }
-            });
-        }
+    auto panel_work = [&](int64_t ip) { return n_jp - (ip * mr) / nr; };  // column panels right of the diagonal
+    int64_t total_work = 0;
+    for (int64_t ip = 0; ip < n_ip; ++ip) total_work += panel_work(ip);
+    const int64_t n_groups = nthreads > 1 ? std::min<int64_t>(n_ip, 4 * nthreads) : 1;
+    std::vector<int64_t> group_start{0};
+    for (int64_t ip = 0, acc = 0; ip < n_ip; ++ip) {
+        acc += panel_work(ip);
+        if (acc * n_groups >= total_work * (int64_t)group_start.size() && ip + 1 < n_ip &&
+            (int64_t)group_start.size() < n_groups)
+            group_start.push_back(ip + 1);
     }
+    group_start.push_back(n_ip);
+    DynamicRange groups(0, (int64_t)group_start.size() - 1, 1);
+    std::atomic<int64_t> by_worker{0};
+    std::atomic<double> t_worker_start{0};
+    const auto tg0 = std::chrono::steady_clock::now();
+    parallel_region(nthreads, [&](int tid) {
+        if (tid) t_worker_start = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - tg0).count();
+        int64_t g, g_hi;
+        while (groups.next(g, g_hi)) {
+            if (tid) ++by_worker;
+            const int64_t ip0 = group_start[g], ip1 = group_start[g + 1];
+            for (int64_t jc = (ip0 * mr) / nr; jc < n_jp; jc += nc_panels) {
+                const int64_t jc_end = std::min(n_jp, jc + nc_panels);
+                for (int64_t k0 = 0; k0 < nk; k0 += kc_max) {
+                    const int64_t kc = std::min(kc_max, nk - k0);
+                    for (int64_t ip = ip0; ip < ip1; ++ip) {
+                        const int64_t i0 = ip * mr;
+                        const T *ap = A.data() + ((size_t)ip * nk + k0) * mr;
+                        for (int64_t jp = std::max(jc, i0 / nr); jp < jc_end; ++jp)
+                            tile.fn(ap, B.data() + ((size_t)jp * nk + k0) * nr, kc,
+                                    P.data() + (size_t)i0 * ld + jp * nr, ld);
+                    }
+                }
+            }
+        }
+    });
     const auto tp1 = std::chrono::steady_clock::now();
+    if (std::getenv("FASTMAC_PROFILE")) std::fprintf(stderr, "gemm_groups: groups %lld by_worker %lld worker_start %.3f\n", (long long)group_start.size() - 1, (long long)by_worker.load(), t_worker_start.load());
     g_pack = std::chrono::duration<double, std::milli>(tp0 - tq0).count(); g_gemm = std::chrono::duration<double, std::milli>(tp1 - tp0).count();
     // The nodes outside K: each pair of their core neighbours, a < b (a thread owns a range of rows a).
     std::vector<int64_t> nb_ptr{0};
