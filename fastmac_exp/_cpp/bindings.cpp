@@ -1,6 +1,3 @@
-#include <chrono>
-#include <cstdio>
-#include <cstdlib>
 // nanobind module fastmac_exp._mac_core: numpy in, numpy out; the GIL is released while computing.
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
@@ -131,19 +128,10 @@ nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &
     fastmac::Signals s;
     {
         nb::gil_scoped_release nogil;
-        const auto t0 = std::chrono::steady_clock::now();
         fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
-        const auto t1 = std::chrono::steady_clock::now();
         int64_t dense_core = 0;
         std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core, single);
-        const auto t2 = std::chrono::steady_clock::now();
         s = fastmac::graph_signals(W, G, self_loops, num_threads);
-        const auto t3 = std::chrono::steady_clock::now();
-        if (std::getenv("FASTMAC_PROFILE")) {
-            auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
-            std::fprintf(stderr, "graph_signals: first_order %.2f second_order %.2f signals %.2f ms\n", ms(t0, t1),
-                         ms(t1, t2), ms(t2, t3));
-        }
         s.dense_core = dense_core;
     }
     nb::dict d;

@@ -1,8 +1,5 @@
 // First- and second-order compatibility graphs (spec 2.1-2.3) and the sampler signals (spec 7.2-7.3).
 #include <algorithm>
-#include <atomic>
-#include <chrono>
-#include <cstdio>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -286,7 +283,6 @@ TestFn pick_test() {
 }  // namespace
 
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
-    const auto tf_start = std::chrono::steady_clock::now();
     check_params(gp);
     nthreads = resolve_threads(nthreads, n);
     Csr W;
@@ -343,8 +339,6 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     std::vector<Part> parts(nthreads);
     std::vector<int32_t> row_tid(n, 0);
     std::vector<int64_t> row_off(n, 0), row_len(n, 0);
-    const auto tf0 = std::chrono::steady_clock::now();
-    std::atomic<int64_t> n_cand_total{0};
     DynamicRange rows(0, n, 16);
     parallel_region(nthreads, [&](int tid) {
         Part &part = parts[tid];
@@ -358,7 +352,6 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
                     part.w.resize(cap);
                 }
                 const size_t n_cand = screen(S, i, i + 1, n, buf.data());
-                n_cand_total += (int64_t)n_cand;
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.size;
                 row_len[i] = (int64_t)test(E, gp, i, buf.data(), n_cand, part.col.data() + part.size,
@@ -366,7 +359,6 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
                 part.size += (size_t)row_len[i];
             }
     });
-    const auto tf1 = std::chrono::steady_clock::now();
 
     // The symmetric CSR: row i = [neighbours j < i ascending | neighbours j > i ascending]. The lower parts
     // are the transpose of the upper ones: a thread fills a block of rows j, taking from every row i < j
@@ -409,12 +401,6 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
             }
         }
     });
-    if (std::getenv("FASTMAC_PROFILE")) {
-        const auto tf2 = std::chrono::steady_clock::now();
-        auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
-        std::fprintf(stderr, "first_order: prep %.2f screen+test %.2f assemble %.2f candidates %lld edges %lld\n",
-                     ms(tf_start, tf0), ms(tf0, tf1), ms(tf1, tf2), (long long)n_cand_total.load(), (long long)W.n_edges());
-    }
     return W;
 }
 

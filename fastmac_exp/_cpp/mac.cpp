@@ -157,11 +157,8 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
 
     // ---- graph: W and G
     auto t0 = Clock::now();
-    const auto t0g = std::chrono::steady_clock::now();
     Csr W = first_order(src, tgt, n, p.graph, nthreads);
-    const auto pm_fo = std::chrono::steady_clock::now();
     std::vector<double> G = second_order(W, requested);
-    const auto pm_so = std::chrono::steady_clock::now();
     res.t_graph = ms_since(t0);
     res.n_edges = W.n_edges();
     double gmax = 0.0;
@@ -174,7 +171,6 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     if (res.n_sog_edges == 0)
         throw RegistrationFailed("graph has no second-order edge (" + std::to_string(res.n_edges) +
                                  " first-order edges among " + std::to_string(n) + " correspondences)");
-    const auto pm_sog = std::chrono::steady_clock::now();
 
     // ---- cliques: optional reduction (spec 2.5), then the search on G's support
     t0 = Clock::now();
@@ -189,7 +185,6 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         avg_bound += std::cbrt(rowmax * rowmax * gmax);
     }
     avg_bound /= (double)n;
-    const auto pm_ab = std::chrono::steady_clock::now();
     if (p.reduction && n > 50 && avg_bound > 3.0 * (1.0 - 1e-9)) {
         Clustering cl = clustering(W, G, requested);
         const double cmax = *std::max_element(cl.cc.begin(), cl.cc.end());
@@ -206,7 +201,6 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
             res.reduced = true;
         }
     }
-    const auto pm_cl = std::chrono::steady_clock::now();
     // The clique graph: G's support (reduced or not), with G's values alongside for the clique weights
     // (reduction removes edges but never changes the values of those it keeps).
     AdjGraph cg;
@@ -224,7 +218,6 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         }
         cg.ptr[i + 1] = (int64_t)cg.col.size();
     }
-    const auto pm_cg = std::chrono::steady_clock::now();
     // The weights need only the clique graph from here on: free W and G before the search.
     W = Csr();
     std::vector<double>().swap(G);
@@ -241,12 +234,6 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         res.n_cliques = enumerate_maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads, sink);
     }
     res.t_cliques = ms_since(t0);
-    const auto pm_search = std::chrono::steady_clock::now();
-    if (std::getenv("FASTMAC_PROFILE")) {
-        auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
-        std::fprintf(stderr, "mac: first_order %.2f second_order %.2f sog %.2f avg_bound %.2f clustering %.2f cgraph %.2f search %.2f\n",
-                     ms(t0g, pm_fo), ms(pm_fo, pm_so), ms(pm_so, pm_sog), ms(pm_sog, pm_ab), ms(pm_ab, pm_cl), ms(pm_cl, pm_cg), ms(pm_cg, pm_search));
-    }
     if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));
 
