@@ -14,7 +14,7 @@ from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "BackendUnavailable",

@@ -192,6 +192,29 @@ def test_packed_products_at_tile_edges_and_thread_counts(monkeypatch, n, ratio):
                 np.testing.assert_array_equal(sig[t][k], sig[1][k])
 
 
+@pytest.mark.parametrize("na,nb,dim", [(1000, 1500, 33), (13, 5, 33), (9, 1, 3), (40, 17, 7)])
+def test_nearest_rows_equal_a_kd_tree(monkeypatch, na, nb, dim):
+    """The brute-force feature matcher (FPFH) gives cKDTree's nearest neighbour, with the lowest index on
+    exact ties, for block and padding edges (rows not a multiple of 8, fewer columns than a vector)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(na)
+    a, b = rng.random((na, dim)), rng.random((nb, dim))
+    b[nb // 2 :] = b[: nb - nb // 2] if nb > 1 else b[nb // 2 :]  # duplicated rows: exact ties
+    dist, _ = cKDTree(b).query(a, k=1)
+    for kernel in ("generic", "avx512"):
+        monkeypatch.setenv("FASTMAC_NN", kernel)  # falls back where the CPU lacks AVX-512
+        for threads in (1, 2):
+            idx = core.nearest_rows(a, b, num_threads=threads)
+            np.testing.assert_allclose(np.linalg.norm(a - b[idx], axis=1), dist, rtol=1e-12, atol=1e-12)
+            d_all = np.linalg.norm(a[:, None] - b[None], axis=2)
+            ties = np.isclose(d_all, dist[:, None], rtol=1e-12, atol=1e-12)
+            np.testing.assert_array_equal(idx, ties.argmax(axis=1))  # the lowest index among the ties
+    with pytest.raises(ValueError, match="same number of columns"):
+        core.nearest_rows(a, b[:, :2].copy())
+    assert len(core.nearest_rows(a[:0].copy(), b)) == 0
+
+
 def test_core_keeps_freed_memory_unless_told_not_to():
     """The module sets glibc's malloc to keep freed memory mapped (page faults cost ~1.7 us each in a VM);
     FASTMAC_MALLOC_TUNE=0 leaves the allocator as it was."""

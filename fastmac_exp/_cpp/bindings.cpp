@@ -242,6 +242,19 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     return d;
 }
 
+nb::object nearest_rows(const Points &a, const Points &b, int num_threads) {
+    if (a.shape(1) != b.shape(1))
+        throw std::invalid_argument("a and b must have the same number of columns, got " +
+                                    std::to_string(a.shape(1)) + " and " + std::to_string(b.shape(1)));
+    std::vector<int64_t> idx;
+    {
+        nb::gil_scoped_release nogil;
+        idx = fastmac::nearest_rows(a.data(), (int64_t)a.shape(0), b.data(), (int64_t)b.shape(0),
+                                    (int64_t)a.shape(1), num_threads);
+    }
+    return to_numpy(std::move(idx));
+}
+
 nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
     const int64_t n = check_pair(src, tgt);
     std::vector<double> w;
@@ -307,6 +320,8 @@ NB_MODULE(_mac_core, m) {
           "Node-guided clique selection (spec 4) on the graph with positive edge weights w: a dict with "
           "'cliques' (the selected cliques in hypothesis order), 'n_cliques' (maximal cliques enumerated, or "
           "cliques offered by the branch and bound), 'search_nodes' and 'cap_hit'.");
+    m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,
+          "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },

@@ -36,6 +36,11 @@ constexpr int64_t kSerialBelow = 1500;
 int resolve_threads(int num_threads, int64_t n = -1);
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
 
+// For every row of a (na x dim, row-major) the index of the nearest row of b (nb x dim) in Euclidean
+// distance, by brute force in float64 (nearest.cpp); ties go to the lowest index.
+std::vector<int64_t> nearest_rows(const double *a, int64_t na, const double *b, int64_t nb, int64_t dim,
+                                  int nthreads);
+
 // Called once when the module loads (glibc only; FASTMAC_MALLOC_TUNE=0 skips it): large blocks come from
 // the heap and freed memory stays mapped (mallopt M_MMAP_THRESHOLD 256 MiB, M_TRIM_THRESHOLD 512 MiB), so
 // a call reuses the pages of the previous one. Each call on an outdoor pair allocates and frees ~35 MB
