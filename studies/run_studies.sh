@@ -11,6 +11,8 @@
 # RR stays at 100 % down to ratio 0.01, and its dense inlier graphs make the clique search slow.
 #
 # Studies: sampling filter signal stochastic descriptor profile sota timing
+# Threads: one BLAS / OpenMP thread everywhere, and one C++ core thread (its pool reads OMP_NUM_THREADS),
+# except the profile study, whose core uses CORE_THREADS (default 2).
 # Data:    3dmatch kitti 3dlomatch (synthetic families, N pairs each), real_indoor real_outdoor
 #          (the real pairs of ../shared/data, dataset=shared_real by category)
 # Each sweep's directory is deleted first (RESUME=1 keeps it): a run directory that already holds results
@@ -74,7 +76,7 @@ sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, ti
   local again=()
   [ "${RESUME:-0}" = 1 ] && again=(resume=auto)
   for attempt in 1 2 3; do
-    if python run.py -m "$@" "${COMMON[@]}" "${again[@]}" hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
+    if python run.py -m "$@" "${COMMON[@]}" ${again[@]+"${again[@]}"} hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
       echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
       return 0
     fi
@@ -108,14 +110,18 @@ for study in "${STUDIES[@]}"; do
         # shellcheck disable=SC2046
         sweep "$OUT/signal_ablation_$d" +experiment=signal_ablation $(data_args "$d") $lim
       done ;;
-    profile)  # Table profile / Fig. 1: stage times against the ratio (ratio 1 with sampler=none = MAC)
+    profile)  # Table profile / Fig. 1: stage times against the ratio (ratio 1 with sampler=none = MAC); the
+      # C++ core on CORE_THREADS threads (default 2, this machine's cores: the speed targets are for 2
+      # cores; the core's pool reads OMP_NUM_THREADS), BLAS still on one
+      export OMP_NUM_THREADS=${CORE_THREADS:-2}
       for d in $DATA; do
         # shellcheck disable=SC2046
         sweep "$OUT/time_profile_$d/fastmac" +experiment=time_profile $(data_args "$d") \
           ratio=0.5,0.2,0.1,0.05,0.01
         # shellcheck disable=SC2046
         sweep "$OUT/time_profile_$d/mac" $(data_args "$d") sampler=none
-      done ;;
+      done
+      export OMP_NUM_THREADS=1 ;;
     descriptor)  # Fig. desc: FPFH against the learned descriptors, seed 0, the first $SMALL_N synthetic
       # pairs: fcgf_lite (trained here) everywhere, BUFFER (published weights; 10-50 s per fragment on this
       # CPU) on the real pairs only (DESC_SYNTHETIC="fpfh,fcgf_lite,buffer" adds it to the synthetic ones).
