@@ -32,8 +32,6 @@
 #include <string>
 #include <utility>
 
-#include <sys/mman.h>
-
 #include "dense_tiles.hpp"
 #include "mac_core.hpp"
 #include "parallel.hpp"
@@ -45,52 +43,25 @@ namespace {
 constexpr int64_t kL2Bytes = 384 * 1024;  // the packed B block kept in L2 (kc x nc)
 constexpr int64_t kSuper = 64;  // core rows one thread takes at a time in the pass over the nodes outside K
 
-// A zeroed array. Large ones are mapped directly and marked for transparent huge pages: a fresh 4 KiB
-// page costs a fault (~1.7 us measured in a VM, where faults exit to the hypervisor), which for the ~20 MB
-// of packed operands and products of an outdoor pair added ~10 ms per call; with 2 MiB pages there are a
-// few dozen faults. Where huge pages are off (transparent_hugepage=never) the advice is ignored.
+// A zeroed array from calloc (no std::vector: its value-initialisation would write every byte twice). With
+// the module's malloc setting (memory.cpp) a large one reuses the pages of the previous call.
 template <class T>
 class ZeroArray {
   public:
     ZeroArray() = default;
-    explicit ZeroArray(size_t n) : bytes_(std::max<size_t>(n, 1) * sizeof(T)) {
-        if (bytes_ >= kMapBytes) {
-            void *p = mmap(nullptr, bytes_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-            if (p == MAP_FAILED) throw std::bad_alloc();
-#ifdef MADV_HUGEPAGE
-            madvise(p, bytes_, MADV_HUGEPAGE);
-#endif
-            p_ = static_cast<T *>(p);
-            mapped_ = true;
-        } else {
-            p_ = static_cast<T *>(std::calloc(bytes_ / sizeof(T), sizeof(T)));
-            if (!p_) throw std::bad_alloc();
-        }
+    explicit ZeroArray(size_t n) : p_(static_cast<T *>(std::calloc(std::max<size_t>(n, 1), sizeof(T)))) {
+        if (!p_) throw std::bad_alloc();
     }
-    ZeroArray(ZeroArray &&o) noexcept : p_(o.p_), bytes_(o.bytes_), mapped_(o.mapped_) { o.p_ = nullptr; }
-    ZeroArray &operator=(ZeroArray &&o) noexcept {
-        std::swap(p_, o.p_);
-        std::swap(bytes_, o.bytes_);
-        std::swap(mapped_, o.mapped_);
-        return *this;
-    }
-    ZeroArray(const ZeroArray &) = delete;
-    ZeroArray &operator=(const ZeroArray &) = delete;
-    ~ZeroArray() {
-        if (!p_) return;
-        if (mapped_) munmap(p_, bytes_);
-        else std::free(p_);
-    }
-    T *data() { return p_; }
-    const T *data() const { return p_; }
+    T *data() { return p_.get(); }
+    const T *data() const { return p_.get(); }
     T &operator[](size_t i) { return p_[i]; }
     const T &operator[](size_t i) const { return p_[i]; }
 
   private:
-    static constexpr size_t kMapBytes = 4u << 20;
-    T *p_ = nullptr;
-    size_t bytes_ = 0;
-    bool mapped_ = false;
+    struct Free {
+        void operator()(T *p) const { std::free(p); }
+    };
+    std::unique_ptr<T[], Free> p_;
 };
 
 constexpr int64_t kGenericMR = 4, kGenericNR = 8;

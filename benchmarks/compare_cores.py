@@ -1,0 +1,129 @@
+"""Two builds of the C++ core side by side on the same correspondences, in alternating processes.
+
+    python benchmarks/compare_cores.py --old /path/to/old/_mac_core.so [--new <installed>] [--rounds 5]
+
+Timings on a shared (virtual) machine drift by 20-30 % between runs minutes apart, so a speed-up is only
+meaningful when both builds run in the same session on the same inputs. This script describes the outdoor
+pairs once (FPFH, 5,000 correspondences: the real KITTI/LiDAR/Apollo pairs of ../shared/data and the
+synthetic KITTI-like ones), then runs each build in its own process (FASTMAC_CORE_SO), alternating
+old/new for --rounds rounds, and prints per pair the median ms of: the sampler's graph and signals
+(graph_signals), MAC@100 and FastMAC@20 (high-pass sampling + MAC on the kept 1,000), with new / old.
+
+A build of an earlier commit, for --old:
+    git worktree add /tmp/old <commit> && (cd /tmp/old && pip wheel --no-deps --no-build-isolation -w /tmp/w .)
+    unzip -o /tmp/w/*.whl 'fastmac_exp/_mac_core*' -d /tmp/oldcore   # --old /tmp/oldcore/fastmac_exp/_mac_core...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+# Run in the child: times one build on every saved pair; prints one JSON line.
+CHILD = r"""
+import json, sys, time
+import numpy as np
+from fastmac_exp import core as cpp
+from fastmac_exp.params import mac_params_for
+from fastmac_exp.samplers import GraphFilterSampler
+from fastmac_exp.types import Correspondences
+params = mac_params_for("kitti", "fpfh")
+g = params.graph
+sampler = GraphFilterSampler("highpass", impl="cpp")
+reps = int(sys.argv[2])
+out = {}
+for path in sys.argv[3:]:
+    d = np.load(path)
+    corr = Correspondences(src=d["src"], tgt=d["tgt"])
+    def mac(c):
+        return cpp.core().mac(c.src, c.tgt, g.kernel, g.alpha, g.tau, g.threshold, params.inlier_threshold,
+                              min_clique_size=params.min_clique_size, max_nodes=params.max_nodes)
+    def fastmac():
+        idx = sampler.sample(corr, 0.2, g, "kitti", np.random.default_rng(0)).indices
+        return mac(corr.subset(np.asarray(idx)))
+    row = {}
+    for name, fn in (("signals", lambda: cpp.graph_signals(corr.src, corr.tgt, g)), ("mac100", lambda: mac(corr)),
+                     ("fastmac20", fastmac)):
+        fn()
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter(); fn(); ts.append((time.perf_counter() - t0) * 1e3)
+        row[name] = float(np.median(ts))
+    out[path] = row
+print(json.dumps(out))
+"""
+
+
+def describe_pairs(work: Path) -> list[tuple[str, Path]]:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import bench_core
+
+    saved = []
+    for name, corr, _gt in bench_core.outdoor_pairs(quick=False):
+        path = work / f"{name.replace(':', '_')}.npz"
+        np.savez(path, src=corr.src, tgt=corr.tgt)
+        saved.append((name, path))
+    return saved
+
+
+def run_build(so: str, reps: int, paths: list[Path]) -> dict[str, dict[str, float]]:
+    env = dict(os.environ, FASTMAC_CORE_SO=so)
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, "x", str(reps), *map(str, paths)],
+        env=env, capture_output=True, text=True, check=True, cwd=REPO,
+    )  # fmt: skip
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old", required=True, help="the other build's _mac_core*.so")
+    ap.add_argument("--new", default=None, help="default: the installed extension")
+    ap.add_argument("--rounds", type=int, default=5, help="alternating old/new processes per build")
+    ap.add_argument("--reps", type=int, default=3, help="timed calls per stage in each process")
+    args = ap.parse_args(argv)
+    new = args.new
+    if new is None:
+        import importlib.util
+
+        new = importlib.util.find_spec("fastmac_exp._mac_core").origin
+    with tempfile.TemporaryDirectory() as tmp:
+        pairs = describe_pairs(Path(tmp))
+        paths = [p for _, p in pairs]
+        runs: dict[str, list[dict]] = {"old": [], "new": []}
+        for r in range(args.rounds):
+            for tag, so in (("old", args.old), ("new", new)) if r % 2 == 0 else (("new", new), ("old", args.old)):
+                runs[tag].append(run_build(so, args.reps, paths))
+    stages = ("signals", "mac100", "fastmac20")
+    head = f"{'pair':34} | " + " | ".join(f"{s + ' old':>14} {'new':>7} {'x':>5}" for s in stages)
+    print(f"old: {args.old}\nnew: {new}\n{args.rounds} alternating processes each, {args.reps} calls per stage")
+    print(head)
+    print("-" * len(head))
+    ratios = {s: [] for s in stages}
+    for name, path in pairs:
+        cells = []
+        for s in stages:
+            o = statistics.median(run[str(path)][s] for run in runs["old"])
+            n = statistics.median(run[str(path)][s] for run in runs["new"])
+            ratios[s].append(o / n)
+            cells.append(f"{o:14.1f} {n:7.1f} {o / n:5.2f}")
+        print(f"{name[:34]:34} | " + " | ".join(cells))
+    print("x = old / new (medians over the processes); median speed-up: " + ", ".join(
+        f"{s} {statistics.median(v):.2f}x" for s, v in ratios.items()))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
