@@ -9,9 +9,10 @@ synthetic KITTI-like ones), then runs each build in its own process (FASTMAC_COR
 old/new for --rounds rounds, and prints per pair the median ms of: the sampler's graph and signals
 (graph_signals), MAC@100 and FastMAC@20 (high-pass sampling + MAC on the kept 1,000), with new / old.
 
-A build of an earlier commit, for --old:
-    git worktree add /tmp/old <commit> && (cd /tmp/old && pip wheel --no-deps --no-build-isolation -w /tmp/w .)
-    unzip -o /tmp/w/*.whl 'fastmac_exp/_mac_core*' -d /tmp/oldcore   # --old /tmp/oldcore/fastmac_exp/_mac_core...
+A build of an earlier commit, for --old (then --old /tmp/oldcore/fastmac_exp/_mac_core*.so):
+    git worktree add /tmp/old <commit>
+    (cd /tmp/old && pip wheel --no-deps --no-build-isolation -w /tmp/w .)
+    unzip -o /tmp/w/*.whl 'fastmac_exp/_mac_core*' -d /tmp/oldcore
 """
 
 from __future__ import annotations
@@ -54,8 +55,9 @@ for path in sys.argv[3:]:
         idx = sampler.sample(corr, 0.2, g, "kitti", np.random.default_rng(0)).indices
         return mac(corr.subset(np.asarray(idx)))
     row = {}
-    for name, fn in (("signals", lambda: cpp.graph_signals(corr.src, corr.tgt, g)), ("mac100", lambda: mac(corr)),
-                     ("fastmac20", fastmac)):
+    stages = (("signals", lambda: cpp.graph_signals(corr.src, corr.tgt, g)), ("mac100", lambda: mac(corr)),
+              ("fastmac20", fastmac))
+    for name, fn in stages:
         fn()
         ts = []
         for _ in range(reps):
@@ -103,12 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         pairs = describe_pairs(Path(tmp))
         paths = [p for _, p in pairs]
         runs: dict[str, list[dict]] = {"old": [], "new": []}
+        builds = (("old", args.old), ("new", new))
         for r in range(args.rounds):
-            for tag, so in (("old", args.old), ("new", new)) if r % 2 == 0 else (("new", new), ("old", args.old)):
+            for tag, so in builds if r % 2 == 0 else builds[::-1]:
                 runs[tag].append(run_build(so, args.reps, paths))
     stages = ("signals", "mac100", "fastmac20")
     head = f"{'pair':34} | " + " | ".join(f"{s + ' old':>14} {'new':>7} {'x':>5}" for s in stages)
-    print(f"old: {args.old}\nnew: {new}\n{args.rounds} alternating processes each, {args.reps} calls per stage")
+    print(f"old: {args.old}\nnew: {new}")
+    print(f"{args.rounds} alternating processes each, {args.reps} calls per stage")
     print(head)
     print("-" * len(head))
     ratios = {s: [] for s in stages}
