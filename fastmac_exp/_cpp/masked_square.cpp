@@ -148,8 +148,8 @@ ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const 
     const int64_t m = core.m, nk = (int64_t)core.rows.size();
     const int64_t mr = tile.mr, nr = tile.nr;
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
-    // D = V[K, C] packed twice, straight from the sparse rows: A[ip][r][t] = D[r][ip * mr + t] (the
-    // broadcast operand) and B[jp][r][u] = D[r][jp * nr + u] (the vector operand).
+    // D = V[K, C] packed twice: A[ip][r][t] = D[r][ip * mr + t] (the broadcast operand) and
+    // B[jp][r][u] = D[r][jp * nr + u] (the vector operand); calloc's zeros pad the last panels.
     ZeroArray<T> A((size_t)n_ip * nk * mr), B((size_t)n_jp * nk * nr), P((size_t)n_ip * mr * ld);
     std::vector<uint8_t> in_rows(V.n, 0);
     for (int32_t k : core.rows) in_rows[k] = 1;
@@ -187,8 +187,8 @@ ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const 
     // Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
     // L2 while a thread runs over its row panels of P; for each row panel the A micro-panel (kc x mr) stays
     // in L1 across the block's column panels. Threads take groups of consecutive row panels of about equal
-    // work (one parallel region: waking a worker costs more in a VM than a short region gains) and run
-    // each group in the blocked order; a group owns its rows of P, so no tile is shared.
+    // work, in one parallel region, and run each group in the blocked order; a group owns its rows of P,
+    // and every tile sums its blocks of rows in the same order, so P is the same for any thread count.
     const int64_t kc_max = std::min<int64_t>(nk, 256);
     const int64_t nc_panels = std::max<int64_t>(1, kL2Bytes / (kc_max * nr * (int64_t)sizeof(T)));
     auto panel_work = [&](int64_t ip) { return n_jp - (ip * mr) / nr; };  // column panels right of the diagonal
