@@ -7,7 +7,8 @@ meaningful when both builds run in the same session on the same inputs. This scr
 pairs once (FPFH, 5,000 correspondences: the real KITTI/LiDAR/Apollo pairs of ../shared/data and the
 synthetic KITTI-like ones), then runs each build in its own process (FASTMAC_CORE_SO), alternating
 old/new for --rounds rounds, and prints per pair the median ms of: the sampler's graph and signals
-(graph_signals), MAC@100 and FastMAC@20 (high-pass sampling + MAC on the kept 1,000), with new / old.
+(graph_signals), MAC@100 and FastMAC@20 (high-pass sampling + MAC on the kept 1,000; bench_core's
+signals_ms and outdoor_run), with new / old.
 
 A build of an earlier commit, for --old (then --old /tmp/oldcore/fastmac_exp/_mac_core*.so):
     git worktree add /tmp/old <commit>
@@ -32,38 +33,25 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-# Run in the child: times one build on every saved pair; prints one JSON line.
+# Run in the child: times one build on every saved pair with bench_core's own timers (the same calls as
+# its outdoor section: graph_signals, and sampling + MAC with the default search); one JSON line.
 CHILD = r"""
-import json, sys, time
+import json, sys
 import numpy as np
-from fastmac_exp import core as cpp
-from fastmac_exp.params import mac_params_for
-from fastmac_exp.samplers import GraphFilterSampler
+sys.path.insert(0, "benchmarks")
+import bench_core
 from fastmac_exp.types import Correspondences
-params = mac_params_for("kitti", "fpfh")
-g = params.graph
-sampler = GraphFilterSampler("highpass", impl="cpp")
 reps = int(sys.argv[2])
 out = {}
 for path in sys.argv[3:]:
     d = np.load(path)
     corr = Correspondences(src=d["src"], tgt=d["tgt"])
-    def mac(c):
-        return cpp.core().mac(c.src, c.tgt, g.kernel, g.alpha, g.tau, g.threshold, params.inlier_threshold,
-                              min_clique_size=params.min_clique_size, max_nodes=params.max_nodes)
-    def fastmac():
-        idx = sampler.sample(corr, 0.2, g, "kitti", np.random.default_rng(0)).indices
-        return mac(corr.subset(np.asarray(idx)))
-    row = {}
-    stages = (("signals", lambda: cpp.graph_signals(corr.src, corr.tgt, g)), ("mac100", lambda: mac(corr)),
-              ("fastmac20", fastmac))
-    for name, fn in stages:
-        fn()
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter(); fn(); ts.append((time.perf_counter() - t0) * 1e3)
-        row[name] = float(np.median(ts))
-    out[path] = row
+    bench_core.outdoor_run(corr, 0.2, "bnb", 1, 0)  # warm-up
+    out[path] = {
+        "signals": bench_core.signals_ms(corr, reps, 0, single=True, dense=True)[0],
+        "mac100": bench_core.outdoor_run(corr, 1.0, "bnb", reps, 0)[0],
+        "fastmac20": bench_core.outdoor_run(corr, 0.2, "bnb", reps, 0)[0],
+    }
 print(json.dumps(out))
 """
 
