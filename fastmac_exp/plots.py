@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -111,10 +112,16 @@ def plot_sampling(
                 ax.set_ylim(bottom=0)
             ax.set_title(f"{panel}: {label}" if panel else label, fontsize=10)
         axes[row, 0].legend(fontsize=8, loc="best")
-    fig.suptitle(title, fontsize=12)
+    _suptitle(fig, title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _suptitle(fig, title: str) -> None:
+    """The figure's title, wrapped to its width (a one-panel figure is narrower than a long title)."""
+    width = max(30, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 12 pt
+    fig.suptitle("\n".join(textwrap.wrap(title, width)), fontsize=12)
 
 
 def plot_time_profile(
@@ -169,7 +176,7 @@ def plot_time_profile(
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
-    fig.suptitle(title, fontsize=12)
+    _suptitle(fig, title)
     axes[0, 0].legend(handles, labels, loc="upper right", fontsize=7, framealpha=0.85)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -214,7 +221,7 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
         ax.grid(True, which="both", alpha=0.3)
         ax.set_title(title or "RR against time", fontsize=10)
         ax.legend(fontsize=8, loc="best")
-    fig.suptitle("Registration recall against time", fontsize=12)
+    _suptitle(fig, "Registration recall against time")
     fig.tight_layout()
     for col, items in labels.items():
         _place_labels(axes[0, col], items)
