@@ -129,7 +129,8 @@ class RegistrationResult:
     n_edges: int = 0
     reduced: bool = False
     cap_hit: str = ""
-    search: str = "enumerate"  # how the cliques were found: "bnb" or "enumerate" (MacParams.search)
+    # how the cliques were found: "bnb", "enumerate", "auto:enumerate" or "auto:bnb" (MacParams.search)
+    search: str = "enumerate"
     search_nodes: int = 0  # branch-and-bound search-tree nodes (0 for the enumeration)
     timings: dict[str, float] = field(default_factory=dict)
     scores: np.ndarray | None = None  # per-node sampling scores over the input, if a sampler ran

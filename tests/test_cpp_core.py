@@ -421,7 +421,7 @@ def test_clique_caps_are_recorded():
     corr, _ = make_correspondences(n=600, inlier_ratio=0.05, noise=0.002, seed=3)
     res = cpp_backend.CppBackend().register(corr, MacParams(search="enumerate", max_cliques=2))
     assert res.cap_hit == "max_cliques=2" and res.n_cliques == 2
-    res = cpp_backend.CppBackend().register(corr, MacParams(max_nodes=2))
+    res = cpp_backend.CppBackend().register(corr, MacParams(search="bnb", max_nodes=2))
     assert res.cap_hit == "max_nodes=2" and res.search == "bnb"
 
 
@@ -580,9 +580,11 @@ def test_parity_with_python_backend(case):
     )
     if extent < 10 and ratio == 0.5:
         assert a.reduced, "the dense case must exercise the reduction of spec 2.5"
-    b = cpp_backend.CppBackend().register(corr, params)  # the default search: branch and bound
+    b = cpp_backend.CppBackend().register(corr, replace(params, search="bnb"))
     assert b.search == "bnb" and b.cap_hit == ""
-    for c in (enum, b):
+    auto = cpp_backend.CppBackend().register(corr, params)  # the default search
+    assert auto.search == "auto:enumerate" and auto.n_cliques == enum.n_cliques
+    for c in (enum, b, auto):
         assert (c.n_selected, c.n_edges, c.reduced) == (a.n_selected, a.n_edges, a.reduced)
         np.testing.assert_array_equal(a.clique, c.clique)
         np.testing.assert_allclose(c.pose_unrefined, a.pose_unrefined, atol=1e-6)

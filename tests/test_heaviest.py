@@ -123,18 +123,43 @@ def test_node_budget_is_reproducible_across_threads():
     assert runs[0][1]["search_nodes"] == runs[1][1]["search_nodes"] == runs[2][1]["search_nodes"]
 
 
-def test_mac_default_search_is_branch_and_bound_and_agrees():
+def test_mac_default_search_is_auto_and_all_searches_agree():
     from tests.test_cpp_core import clustered
 
     src, tgt, _, _ = clustered(400, 0.3, 0.002, seed=9, extent=3.0)
     args = (src, tgt, "quadratic", 0.06, 0.1, 0.9, 0.1)
-    bnb = core.mac(*args, return_selected=True)
+    auto = core.mac(*args, return_selected=True)  # few maximal cliques: the enumeration runs
+    bnb = core.mac(*args, search="bnb", return_selected=True)
     enum = core.mac(*args, search="enumerate", return_selected=True)
-    assert [tuple(c) for c in bnb["selected"]] == [tuple(c) for c in enum["selected"]]
-    np.testing.assert_array_equal(bnb["pose"], enum["pose"])
-    assert bnb["search_nodes"] > 0 and enum["search_nodes"] == 0
+    forced = core.mac(*args, enumerate_below=0, return_selected=True)  # auto straight to the bnb
+    assert auto["search_used"] == "enumerate" and auto["n_cliques"] == enum["n_cliques"]
+    assert forced["search_used"] == bnb["search_used"] == "bnb"
+    for r in (bnb, enum, forced):
+        assert [tuple(c) for c in r["selected"]] == [tuple(c) for c in auto["selected"]]
+        np.testing.assert_array_equal(r["pose"], auto["pose"])
+    assert bnb["search_nodes"] == forced["search_nodes"] > 0 and enum["search_nodes"] == 0
     with pytest.raises(ValueError, match="search"):
         core.mac(*args, search="fast")
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_auto_gives_the_enumeration_up_exactly_above_its_count(threads):
+    """2^12 maximal cliques: auto enumerates at enumerate_below = 2^12 and switches to the branch and bound
+    at 2^12 - 1, whatever the thread count (the count is a property of the graph), with the same result."""
+    n, pairs = 40, 12
+    a = np.triu(np.ones((n, n), dtype=bool), 1)
+    a[np.arange(0, 2 * pairs, 2), np.arange(1, 2 * pairs + 1, 2)] = False
+    i, j = np.nonzero(a)
+    w = second_order_weights(a, np.random.default_rng(1))
+    ref, _ = selection(n, i, j, w, 3, "enumerate", threads)
+    for below, used in ((2**pairs, "enumerate"), (2**pairs - 1, "bnb"), (0, "bnb")):
+        got, out = selection(n, i, j, w, 3, "auto", threads, enumerate_below=below)
+        assert out["search_used"] == used and out["cap_hit"] == ""
+        if used == "enumerate":
+            assert out["n_cliques"] == 2**pairs and out["search_nodes"] == 0
+        else:
+            assert out["search_nodes"] > 0
+        assert got == ref
 
 
 def test_weights_must_be_positive():

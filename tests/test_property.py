@@ -39,7 +39,8 @@ def test_backends_agree_and_never_crash(seed, n, outlier_fraction, noise, family
     runs = [
         (PythonBackend(), params),
         (cpp_backend.CppBackend(), replace(params, search="enumerate")),
-        (cpp_backend.CppBackend(), params),  # the default search: branch and bound
+        (cpp_backend.CppBackend(), replace(params, search="bnb")),
+        (cpp_backend.CppBackend(), params),  # the default search: auto
     ]
     for backend, p in runs:
         try:
@@ -47,13 +48,13 @@ def test_backends_agree_and_never_crash(seed, n, outlier_fraction, noise, family
             outcomes.append(("ok", res))
         except RegistrationFailed as exc:
             outcomes.append(("failed", str(exc).split("(")[0].strip()))
-    (ka, a), (kb, b), (kc, c) = outcomes
-    assert ka == kb == kc, outcomes
+    (ka, a), (kb, b), (kc, c), (kd, d) = outcomes
+    assert ka == kb == kc == kd, outcomes
     if ka == "failed":
-        assert a == b == c
+        assert a == b == c == d
         return
     assert a.n_cliques == b.n_cliques
-    for other in (b, c):
+    for other in (b, c, d):
         assert other.n_selected == a.n_selected
         np.testing.assert_array_equal(np.sort(a.clique), np.sort(other.clique))
         np.testing.assert_allclose(a.pose, other.pose, atol=1e-6)

@@ -114,8 +114,9 @@ inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 struct Shared {
     std::atomic<bool> stop{false};
     std::atomic<int64_t> found{0};
-    std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit, 3 = interrupted
+    std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit, 3 = interrupted, 4 = gave up
     int64_t max_cliques = 0;
+    int64_t give_up_above = 0;  // counted in batches (see Worker::emit)
     Interrupt *interrupt = nullptr;  // polled by thread 0 (the caller) only
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
@@ -127,6 +128,14 @@ class Worker {
         : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1) {}
 
     int64_t delivered = 0;
+    int64_t unflushed = 0;  // cliques not yet added to sh_.found (give_up_above only)
+
+    // Adds the unflushed count to the shared one; true when the total is above give_up_above.
+    bool flush() {
+        const int64_t k = sh_.found.fetch_add(unflushed) + unflushed;
+        unflushed = 0;
+        return k > sh_.give_up_above;
+    }
 
     void run_root(int32_t v, const std::vector<int32_t> &rank) {
         const int32_t rv = rank[v];
@@ -202,6 +211,14 @@ class Worker {
     }
 
     void emit() {
+        // give_up_above: the shared count is updated every 64 cliques (an atomic per clique costs more
+        // than a small clique); whether the total exceeds the cap is settled after the search anyway.
+        if (sh_.give_up_above > 0 && ++unflushed == 64 && flush()) {
+            int expected = 0;
+            sh_.why.compare_exchange_strong(expected, 4);
+            sh_.stop.store(true);
+            return;
+        }
         if (sh_.max_cliques > 0) {
             const int64_t k = sh_.found.fetch_add(1) + 1;
             if (k > sh_.max_cliques) {
@@ -282,8 +299,9 @@ class Worker {
 }  // namespace
 
 int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                                  int nthreads, CliqueSink &sink) {
+                                  int nthreads, CliqueSink &sink, bool *gave_up) {
     cap_hit.clear();
+    if (gave_up) *gave_up = false;
     if (min_size < 1) min_size = 1;
     nthreads = resolve_threads(nthreads, g.n);
     // With a count cap, run serially so that the partial set is reproducible.
@@ -295,6 +313,7 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
 
     Shared sh;
     sh.max_cliques = caps.max_cliques;
+    sh.give_up_above = gave_up ? caps.give_up_above : 0;
     if (caps.time_limit_s > 0) {
         sh.timed = true;
         sh.deadline = std::chrono::steady_clock::now() +
@@ -316,6 +335,10 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             for (int64_t i = lo; i < hi && !sh.stop.load(std::memory_order_relaxed); ++i)
                 wk.run_root(order[i], rank);
         counts[tid] = wk.delivered;
+        if (sh.give_up_above > 0 && wk.flush()) {
+            int expected = 0;
+            sh.why.compare_exchange_strong(expected, 4);
+        }
         inside.fetch_sub(1);
         if (tid == 0)  // the caller: wait for the others here, where Ctrl-C can still be seen
             while (inside.load() > 0) {
@@ -328,6 +351,10 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             }
     });
     if (sh.why.load() == 3) throw Interrupted();
+    if (sh.why.load() == 4) {  // more maximal cliques than give_up_above: the caller searches otherwise
+        *gave_up = true;
+        return 0;
+    }
 
     if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);
     if (sh.why.load() == 2) {

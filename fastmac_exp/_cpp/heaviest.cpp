@@ -165,7 +165,7 @@ class Searcher {
     NodeChoice &choice_;
     Control &ctl_;
     const int tid_;
-    std::vector<int32_t> loc_, L_, R_, members_, C_;
+    std::vector<int32_t> loc_, L_, R_, members_, C_, hit_;
     std::vector<double> ca_;
     std::vector<uint64_t> adj_, U_, Q_;
     std::vector<double> gm_;  // local weights, np x np (0 = no edge)
@@ -183,20 +183,41 @@ class Searcher {
         nl_ = (int)L_.size();
         W_ = (nl_ + 63) / 64;
         for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
-        // Bit rows of every local vertex; weights among the candidates only (excluded vertices never
-        // join a clique here).
+        // Local adjacency from the rows of the candidates only: candidate-candidate bits both ways,
+        // candidate-excluded bits into both rows. Excluded-excluded bits are never read (pivots count
+        // neighbours among the candidates; X is only ever intersected with candidates' rows), and
+        // excluded vertices never join a clique here, so weights are among the candidates only.
+        // This loop is most of a sparse graph's search: each candidate's row is first compacted to its
+        // local neighbours without a branch, then written (a register for one-word rows).
         adj_.assign((size_t)nl_ * W_, 0);
         gm_.assign((size_t)np_ * np_, 0.0);
-        for (int k = 0; k < nl_; ++k) {
+        for (int k = 0; k < np_; ++k) {
             const int32_t u = L_[k];
-            uint64_t *row = adj_.data() + (size_t)k * W_;
-            double *grow = k < np_ ? gm_.data() + (size_t)k * np_ : nullptr;
-            for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
-                const int32_t x = loc_[g_.col[p]];
-                if (x < 0) continue;
-                row[x >> 6] |= uint64_t(1) << (x & 63);
-                if (grow && x < np_) grow[x] = vals_[p];
+            const int64_t p0 = g_.ptr[u], len = g_.ptr[u + 1] - p0;
+            if ((int64_t)hit_.size() < len) hit_.resize(len);
+            int32_t *hit = hit_.data();
+            int64_t c = 0;
+            for (int64_t q = 0; q < len; ++q) {
+                const int32_t x = loc_[g_.col[p0 + q]];
+                hit[c] = (int32_t)q;
+                c += x >= 0;
             }
+            uint64_t *row = adj_.data() + (size_t)k * W_;
+            double *grow = gm_.data() + (size_t)k * np_;
+            const uint64_t bit_k = uint64_t(1) << (k & 63);
+            uint64_t *col_k = adj_.data() + (k >> 6);
+            uint64_t word = 0;
+            for (int64_t h = 0; h < c; ++h) {
+                const int64_t p = p0 + hit[h];
+                const int32_t x = loc_[g_.col[p]];
+                if (W_ == 1)
+                    word |= uint64_t(1) << x;
+                else
+                    row[x >> 6] |= uint64_t(1) << (x & 63);
+                col_k[(size_t)x * W_] |= bit_k;  // symmetric (a candidate x's own row sets it too)
+                if (x < np_) grow[x] = vals_[p];
+            }
+            if (W_ == 1) row[0] |= word;
         }
         if ((int)levels_.size() < np_ + 2) levels_.resize(np_ + 2);
         Level &top = levels_[0];

@@ -129,20 +129,52 @@ Clustering clustering(const Csr &W, const std::vector<double> &G, int nthreads) 
 Search parse_search(const std::string &name) {
     if (name == "bnb") return Search::Heaviest;
     if (name == "enumerate") return Search::Enumerate;
-    throw std::invalid_argument("search must be 'bnb' or 'enumerate', got '" + name + "'");
+    if (name == "auto") return Search::Auto;
+    throw std::invalid_argument("search must be 'auto', 'bnb' or 'enumerate', got '" + name + "'");
+}
+
+const char *search_name(Search s) {
+    switch (s) {
+        case Search::Heaviest: return "bnb";
+        case Search::Enumerate: return "enumerate";
+        default: return "auto";
+    }
+}
+
+int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
+                      const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
+                      NodeChoice &choice, Search *used) {
+    search_nodes = 0;
+    if (search == Search::Enumerate || (search == Search::Auto && caps.give_up_above > 0)) {
+        SelectSink sink(choice);
+        if (search == Search::Enumerate) {
+            if (used) *used = Search::Enumerate;
+            return enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
+        }
+        // Auto: the enumeration with a give-up count (not max_cliques: a partial list is never used here)
+        CliqueCaps first = caps;
+        first.max_cliques = 0;
+        bool gave_up = false;
+        const auto t0 = Clock::now();
+        const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &gave_up);
+        if (!gave_up) {
+            if (used) *used = Search::Enumerate;
+            return found;
+        }
+        CliqueCaps rest = caps;  // the time limit covers both searches together
+        if (rest.time_limit_s > 0) rest.time_limit_s = std::max(1e-6, rest.time_limit_s - ms_since(t0) / 1e3);
+        if (used) *used = Search::Heaviest;
+        return heaviest_cliques(g, vals, min_size, rest, cap_hit, search_nodes, nthreads, choice);
+    }
+    if (used) *used = Search::Heaviest;
+    return heaviest_cliques(g, vals, min_size, caps, cap_hit, search_nodes, nthreads, choice);
 }
 
 CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                                  const CliqueCaps &caps, std::string &cap_hit, int64_t &n_cliques,
                                  int64_t &search_nodes, int nthreads) {
     NodeChoice choice(g, vals);
-    search_nodes = 0;
-    if (search == Search::Heaviest) {
-        n_cliques = heaviest_cliques(g, vals, min_size, caps, cap_hit, search_nodes, nthreads, choice);
-    } else {
-        SelectSink sink(choice);
-        n_cliques = enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
-    }
+    n_cliques = clique_search(g, vals, min_size, search, caps, cap_hit, search_nodes, nthreads, choice, nullptr);
     return choice.finish();
 }
 
@@ -225,14 +257,10 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     caps.max_cliques = p.max_cliques;
     caps.max_nodes = p.max_nodes;
     caps.time_limit_s = p.time_limit_s;
+    caps.give_up_above = p.enumerate_below;
     NodeChoice choice(cg, cgw);
-    if (p.search == Search::Heaviest) {
-        res.n_cliques =
-            heaviest_cliques(cg, cgw, p.min_clique_size, caps, res.cap_hit, res.search_nodes, nthreads, choice);
-    } else {
-        SelectSink sink(choice);
-        res.n_cliques = enumerate_maximal_cliques(cg, p.min_clique_size, caps, res.cap_hit, nthreads, sink);
-    }
+    res.n_cliques = clique_search(cg, cgw, p.min_clique_size, p.search, caps, res.cap_hit, res.search_nodes,
+                                  nthreads, choice, &res.search_used);
     res.t_cliques = ms_since(t0);
     if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));

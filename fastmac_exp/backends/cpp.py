@@ -55,8 +55,12 @@ class CppBackend:
             max_cliques=int(params.max_cliques),
             max_nodes=int(params.max_nodes),
             time_limit_s=float(params.time_limit_s),
+            enumerate_below=int(params.enumerate_below),
             num_threads=self.num_threads,
         )
+        search = str(params.search)
+        if search == "auto":
+            search = f"auto:{r['search_used']}"  # which of the two searches ran
         return RegistrationResult(
             pose=r["pose"],
             pose_unrefined=r["pose_unrefined"],
@@ -68,7 +72,7 @@ class CppBackend:
             n_edges=int(r["n_edges"]),
             reduced=bool(r["reduced"]),
             cap_hit=str(r["cap_hit"]),
-            search=str(params.search),
+            search=search,
             search_nodes=int(r["search_nodes"]),
             timings=dict(r["timings"]),
         )
