@@ -51,11 +51,13 @@ SEARCHES = ("auto", "bnb", "enumerate")
 # spec-2.5 reduction, 342 missing edges, 8e6 nodes / 9 s exactly; capped at 1e6 its pose is 0.0008 deg and
 # 8 um from the exact one). A run that spends it says so in `cap_hit` (the same on every machine).
 DEFAULT_MAX_NODES = 1_000_000
-# search="auto" enumerates while the graph has at most this many maximal cliques, else runs the branch and
-# bound. Sparse graphs (real 3DMatch FPFH, the sparser KITTI and Apollo pairs: 23k-35k maximal cliques)
-# enumerate 2-3x faster than the branch and bound bounds; a graph above the count costs the enumeration of
-# that many first (~15-30 ms on 2 cores) before the branch and bound takes over.
-DEFAULT_ENUMERATE_BELOW = 50_000
+# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget (16
+# units a search node, 1 a member pair of each clique found), else runs the branch and bound. The units
+# were measured on real pairs: a node ~190 ns, a pair ~12 ns, so the budget is ~30 ms of one core. Sparse
+# graphs (real 3DMatch and the sparser real KITTI and Apollo FPFH graphs: 1.1-1.7M units, 23k-35k maximal
+# cliques) enumerate 2-3x faster than the branch and bound bounds them; a graph over budget pays that much
+# enumeration first (~15 ms on 2 cores). The answer is a property of the graph, not of threads or timing.
+DEFAULT_ENUMERATE_BUDGET = 2_500_000
 
 
 @dataclass(frozen=True)
@@ -69,21 +71,21 @@ class MacParams:
     reduction: bool = True  # the dense-graph reduction of spec section 2.5
     # How node-guided selection finds its cliques: "bnb" = each node's heaviest clique by branch and
     # bound (exact: the same selection as enumerating every maximal clique); "enumerate" = every maximal
-    # clique (the reference; the only search of the Python backend); "auto" = the enumeration while the
-    # graph has at most `enumerate_below` maximal cliques, else the branch and bound (the same selection
-    # either way; the row's `search` says which ran: "auto:enumerate" or "auto:bnb").
+    # clique (the reference; the only search of the Python backend); "auto" = the enumeration while its
+    # work stays within `enumerate_budget`, else the branch and bound (the same selection either way; the
+    # row's `search` says which ran: "auto:enumerate" or "auto:bnb"). max_cliques applies to "enumerate".
     search: str = "auto"
     # Work budgets (0 = off): a capped result is the same on any machine and thread count, and says so
     # in `cap_hit`. max_cliques bounds the enumeration, max_nodes the branch and bound.
     max_cliques: int = 0
     max_nodes: int = DEFAULT_MAX_NODES
-    enumerate_below: int = DEFAULT_ENUMERATE_BELOW  # search="auto" only; 0 = always the branch and bound
+    enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # search="auto" only; 0 = always the branch and bound
     time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
 
     def __post_init__(self) -> None:
         if self.search not in SEARCHES:
             raise InputError(f"mac.search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
-        for name in ("max_cliques", "max_nodes", "enumerate_below"):
+        for name in ("max_cliques", "max_nodes", "enumerate_budget"):
             if getattr(self, name) < 0:
                 raise InputError(f"mac.{name} must be >= 0 (0 = no cap), got {getattr(self, name)}")
         if self.time_limit_s < 0:
@@ -130,7 +132,7 @@ def mac_params_for(
         "search",
         "max_cliques",
         "max_nodes",
-        "enumerate_below",
+        "enumerate_budget",
         "time_limit_s",
     }
     if set(m) - known:

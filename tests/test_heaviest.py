@@ -131,7 +131,7 @@ def test_mac_default_search_is_auto_and_all_searches_agree():
     auto = core.mac(*args, return_selected=True)  # few maximal cliques: the enumeration runs
     bnb = core.mac(*args, search="bnb", return_selected=True)
     enum = core.mac(*args, search="enumerate", return_selected=True)
-    forced = core.mac(*args, enumerate_below=0, return_selected=True)  # auto straight to the bnb
+    forced = core.mac(*args, enumerate_budget=0, return_selected=True)  # auto straight to the bnb
     assert auto["search_used"] == "enumerate" and auto["n_cliques"] == enum["n_cliques"]
     assert forced["search_used"] == bnb["search_used"] == "bnb"
     for r in (bnb, enum, forced):
@@ -142,24 +142,31 @@ def test_mac_default_search_is_auto_and_all_searches_agree():
         core.mac(*args, search="fast")
 
 
-@pytest.mark.parametrize("threads", [1, 2, 3])
-def test_auto_gives_the_enumeration_up_exactly_above_its_count(threads):
-    """2^12 maximal cliques: auto enumerates at enumerate_below = 2^12 and switches to the branch and bound
-    at 2^12 - 1, whatever the thread count (the count is a property of the graph), with the same result."""
+def test_auto_gives_the_enumeration_up_exactly_above_its_budget():
+    """2^12 maximal cliques: the enumeration's work is the same number for 1, 2 and 3 threads (a property
+    of the graph), auto enumerates with exactly that budget and switches to the branch and bound one unit
+    below it, with the same selection either way."""
     n, pairs = 40, 12
     a = np.triu(np.ones((n, n), dtype=bool), 1)
     a[np.arange(0, 2 * pairs, 2), np.arange(1, 2 * pairs + 1, 2)] = False
     i, j = np.nonzero(a)
     w = second_order_weights(a, np.random.default_rng(1))
-    ref, _ = selection(n, i, j, w, 3, "enumerate", threads)
-    for below, used in ((2**pairs, "enumerate"), (2**pairs - 1, "bnb"), (0, "bnb")):
-        got, out = selection(n, i, j, w, 3, "auto", threads, enumerate_below=below)
-        assert out["search_used"] == used and out["cap_hit"] == ""
-        if used == "enumerate":
-            assert out["n_cliques"] == 2**pairs and out["search_nodes"] == 0
-        else:
-            assert out["search_nodes"] > 0
-        assert got == ref
+    ref, _ = selection(n, i, j, w, 3, "enumerate")
+    works = {
+        t: selection(n, i, j, w, 3, "auto", t, enumerate_budget=10**12)[1]["enumerate_work"]
+        for t in (1, 2, 3)
+    }
+    work = works[1]
+    assert works == {1: work, 2: work, 3: work} and work > 16 * 2**pairs
+    for threads in (1, 2, 3):
+        for budget, used in ((work, "enumerate"), (work - 1, "bnb"), (0, "bnb")):
+            got, out = selection(n, i, j, w, 3, "auto", threads, enumerate_budget=budget)
+            assert out["search_used"] == used and out["cap_hit"] == ""
+            if used == "enumerate":
+                assert out["n_cliques"] == 2**pairs and out["search_nodes"] == 0
+            else:
+                assert out["search_nodes"] > 0
+            assert got == ref
 
 
 def test_weights_must_be_positive():

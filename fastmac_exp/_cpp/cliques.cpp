@@ -111,12 +111,17 @@ namespace {
 
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
+// Work units of the give-up budget: measured on real pairs (single thread), a search node costs ~190 ns
+// and weighing a clique ~12 ns per member pair.
+constexpr int64_t kNodeWork = 16;
+constexpr int64_t kWorkBatch = 4096;
+
 struct Shared {
     std::atomic<bool> stop{false};
     std::atomic<int64_t> found{0};
     std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit, 3 = interrupted, 4 = gave up
     int64_t max_cliques = 0;
-    int64_t give_up_above = 0;  // counted in batches (see Worker::emit)
+    int64_t give_up_work = 0;  // in work units (kNodeWork a search node, 1 a member pair of a clique)
     Interrupt *interrupt = nullptr;  // polled by thread 0 (the caller) only
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
@@ -128,13 +133,26 @@ class Worker {
         : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1) {}
 
     int64_t delivered = 0;
-    int64_t unflushed = 0;  // cliques not yet added to sh_.found (give_up_above only)
+    int64_t unflushed = 0;  // work not yet added to sh_.found (give_up_work only)
 
-    // Adds the unflushed count to the shared one; true when the total is above give_up_above.
+    // Adds the unflushed work to the shared total; true when the total is above give_up_work.
     bool flush() {
         const int64_t k = sh_.found.fetch_add(unflushed) + unflushed;
         unflushed = 0;
-        return k > sh_.give_up_above;
+        return k > sh_.give_up_work;
+    }
+
+    // give_up_work: the shared total is updated in batches (an atomic per search node would cost more
+    // than the node). Whether the total exceeds the budget is settled after the search anyway, so the
+    // answer is a property of the graph, not of the threads or their timing.
+    bool over_budget(int64_t work) {
+        if (sh_.give_up_work <= 0) return false;
+        unflushed += work;
+        if (unflushed < kWorkBatch || !flush()) return false;
+        int expected = 0;
+        sh_.why.compare_exchange_strong(expected, 4);
+        sh_.stop.store(true);
+        return true;
     }
 
     void run_root(int32_t v, const std::vector<int32_t> &rank) {
@@ -211,14 +229,6 @@ class Worker {
     }
 
     void emit() {
-        // give_up_above: the shared count is updated every 64 cliques (an atomic per clique costs more
-        // than a small clique); whether the total exceeds the cap is settled after the search anyway.
-        if (sh_.give_up_above > 0 && ++unflushed == 64 && flush()) {
-            int expected = 0;
-            sh_.why.compare_exchange_strong(expected, 4);
-            sh_.stop.store(true);
-            return;
-        }
         if (sh_.max_cliques > 0) {
             const int64_t k = sh_.found.fetch_add(1) + 1;
             if (k > sh_.max_cliques) {
@@ -228,6 +238,8 @@ class Worker {
                 return;
             }
         }
+        const int64_t k = (int64_t)R_.size() + 1;
+        if (over_budget(k * (k - 1) / 2)) return;  // the sink weighs the clique: one lookup per pair
         tmp_.clear();
         tmp_.push_back(root_);
         for (int32_t r : R_) tmp_.push_back(L_[r]);
@@ -237,7 +249,7 @@ class Worker {
     }
 
     void expand(int depth) {
-        if (should_stop()) return;
+        if (should_stop() || over_budget(kNodeWork)) return;
         uint64_t *P = level(depth, 0), *X = level(depth, 1);
         int pc = 0;
         for (int w = 0; w < Wp_; ++w) pc += popcount64(P[w]);
@@ -299,7 +311,7 @@ class Worker {
 }  // namespace
 
 int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                                  int nthreads, CliqueSink &sink, bool *gave_up) {
+                                  int nthreads, CliqueSink &sink, bool *gave_up, int64_t *work) {
     cap_hit.clear();
     if (gave_up) *gave_up = false;
     if (min_size < 1) min_size = 1;
@@ -313,7 +325,7 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
 
     Shared sh;
     sh.max_cliques = caps.max_cliques;
-    sh.give_up_above = gave_up ? caps.give_up_above : 0;
+    sh.give_up_work = gave_up ? caps.give_up_work : 0;
     if (caps.time_limit_s > 0) {
         sh.timed = true;
         sh.deadline = std::chrono::steady_clock::now() +
@@ -335,7 +347,7 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             for (int64_t i = lo; i < hi && !sh.stop.load(std::memory_order_relaxed); ++i)
                 wk.run_root(order[i], rank);
         counts[tid] = wk.delivered;
-        if (sh.give_up_above > 0 && wk.flush()) {
+        if (sh.give_up_work > 0 && wk.flush()) {
             int expected = 0;
             sh.why.compare_exchange_strong(expected, 4);
         }
@@ -351,7 +363,8 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             }
     });
     if (sh.why.load() == 3) throw Interrupted();
-    if (sh.why.load() == 4) {  // more maximal cliques than give_up_above: the caller searches otherwise
+    if (work) *work = sh.give_up_work > 0 ? sh.found.load() : 0;
+    if (sh.why.load() == 4) {  // more work than give_up_work: the caller searches otherwise
         *gave_up = true;
         return 0;
     }

@@ -143,9 +143,10 @@ const char *search_name(Search s) {
 
 int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                       const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
-                      NodeChoice &choice, Search *used) {
+                      NodeChoice &choice, Search *used, int64_t *work) {
     search_nodes = 0;
-    if (search == Search::Enumerate || (search == Search::Auto && caps.give_up_above > 0)) {
+    if (work) *work = 0;
+    if (search == Search::Enumerate || (search == Search::Auto && caps.give_up_work > 0)) {
         SelectSink sink(choice);
         if (search == Search::Enumerate) {
             if (used) *used = Search::Enumerate;
@@ -156,7 +157,7 @@ int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int mi
         first.max_cliques = 0;
         bool gave_up = false;
         const auto t0 = Clock::now();
-        const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &gave_up);
+        const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &gave_up, work);
         if (!gave_up) {
             if (used) *used = Search::Enumerate;
             return found;
@@ -257,10 +258,10 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     caps.max_cliques = p.max_cliques;
     caps.max_nodes = p.max_nodes;
     caps.time_limit_s = p.time_limit_s;
-    caps.give_up_above = p.enumerate_below;
+    caps.give_up_work = p.enumerate_budget;
     NodeChoice choice(cg, cgw);
     res.n_cliques = clique_search(cg, cgw, p.min_clique_size, p.search, caps, res.cap_hit, res.search_nodes,
-                                  nthreads, choice, &res.search_used);
+                                  nthreads, choice, &res.search_used, &res.enumerate_work);
     res.t_cliques = ms_since(t0);
     if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));

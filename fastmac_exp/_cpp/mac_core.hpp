@@ -120,9 +120,10 @@ struct CliqueCaps {
     int64_t max_cliques = 0;    // enumeration: stop after this many maximal cliques; 0 = no cap
     int64_t max_nodes = 0;      // branch and bound: search-tree nodes; 0 = no cap
     double time_limit_s = 0.0;  // 0 = no limit
-    // search "auto": enumerate, and give the enumeration up for the branch and bound once the graph has
-    // more maximal cliques than this (a property of the graph: the same answer for any thread count)
-    int64_t give_up_above = 0;
+    // search "auto": enumerate, and give the enumeration up for the branch and bound once its work
+    // (16 units a search node, 1 a member pair of each clique found, which the selection weighs) is above
+    // this: a property of the graph, the same answer for any thread count and machine load
+    int64_t give_up_work = 0;
 };
 
 // Vertices in degeneracy (smallest-last) order.
@@ -140,10 +141,12 @@ class CliqueSink {
 // Bron-Kerbosch with pivoting, run from each vertex in degeneracy order (Eppstein-Loeffler-Strash),
 // over every maximal clique of size >= min_size. Returns how many were delivered; when a cap stops the
 // search, cap_hit names it. With max_cliques the search runs serially (a reproducible partial set).
-// With gave_up given and caps.give_up_above > 0, the search stops once there are more maximal cliques
-// than that, sets *gave_up and returns 0; what the sink received is then to be discarded.
+// With gave_up given and caps.give_up_work > 0, the search stops once its work is above that, sets
+// *gave_up and returns 0; what the sink received is then to be discarded. *work: the work counted
+// (all of it when the search did not give up).
 int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                                  int nthreads, CliqueSink &sink, bool *gave_up = nullptr);
+                                  int nthreads, CliqueSink &sink, bool *gave_up = nullptr,
+                                  int64_t *work = nullptr);
 
 // Every maximal clique of size >= min_size, members ascending, the list in lexicographic (canonical)
 // order. When a cap stops the search, cap_hit names it and the partial list is returned.
@@ -196,19 +199,20 @@ class Scorer {
 // MAC
 
 // How node-guided selection finds its cliques: per-node heaviest cliques by branch and bound (exact),
-// every maximal clique (the reference enumeration), or Auto (the default): the enumeration while the
-// graph has at most CliqueCaps::give_up_above maximal cliques (sparse graphs, where it is the faster of
-// the two), else the branch and bound. All three give the same selection where they finish.
+// every maximal clique (the reference enumeration), or Auto (the default): the enumeration while its
+// work stays within CliqueCaps::give_up_work (sparse graphs, where it is the faster of the two), else the
+// branch and bound. All three give the same selection where they finish.
 enum class Search { Heaviest, Enumerate, Auto };
-constexpr int64_t kEnumerateBelow = 50000;  // the default give-up count of Auto (mac.enumerate_below)
+constexpr int64_t kEnumerateBudget = 2500000;  // Auto's default give_up_work (mac.enumerate_budget)
 Search parse_search(const std::string &name);  // "bnb" | "enumerate" | "auto"; throws std::invalid_argument
 const char *search_name(Search s);
 
 // The clique search of node-guided selection, into choice (started here). Returns n_cliques (see
-// MacResult); *used: the search that produced the result (Auto resolves to one of the other two).
+// MacResult); *used: the search that produced the result (Auto resolves to one of the other two);
+// *work: Auto's enumeration work (CliqueCaps::give_up_work), partial when it gave up.
 int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                       const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
-                      NodeChoice &choice, Search *used);
+                      NodeChoice &choice, Search *used, int64_t *work = nullptr);
 
 struct MacParams {
     GraphParams graph;
@@ -219,7 +223,7 @@ struct MacParams {
     Search search = Search::Auto;
     int64_t max_cliques = 0;  // enumeration budget
     int64_t max_nodes = 0;    // branch-and-bound budget
-    int64_t enumerate_below = 0;  // Auto: CliqueCaps::give_up_above (0: the branch and bound at once)
+    int64_t enumerate_budget = 0;  // Auto: CliqueCaps::give_up_work (0: the branch and bound at once)
     double time_limit_s = 0.0;
     bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
 };
@@ -232,6 +236,7 @@ struct MacResult {
     int64_t n_cliques = 0, n_selected = 0, n_edges = 0, n_sog_edges = 0, search_nodes = 0;
     bool reduced = false;
     Search search_used = Search::Heaviest;
+    int64_t enumerate_work = 0;  // Auto: the enumeration's work (all of it unless it gave up)
     std::string cap_hit;
     CliqueList selected;  // only with MacParams::return_selected
     // Wall-clock milliseconds. graph: W and G. cliques: clustering/reduction, the clique graph and the

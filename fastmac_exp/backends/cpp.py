@@ -55,7 +55,7 @@ class CppBackend:
             max_cliques=int(params.max_cliques),
             max_nodes=int(params.max_nodes),
             time_limit_s=float(params.time_limit_s),
-            enumerate_below=int(params.enumerate_below),
+            enumerate_budget=int(params.enumerate_budget),
             num_threads=self.num_threads,
         )
         search = str(params.search)
