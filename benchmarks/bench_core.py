@@ -361,9 +361,10 @@ class OutdoorRow:
     inlier_ratio: float
     ms: dict[str, float] = field(default_factory=dict)  # method -> median ms end to end
     cap: dict[str, str] = field(default_factory=dict)
-    same: dict[str, str] = field(default_factory=dict)  # ratio -> selection bnb == enumeration?
+    same: dict[str, str] = field(default_factory=dict)  # ratio -> selections auto, bnb == enumeration?
     re_deg: dict[str, float] = field(default_factory=dict)
     nodes: dict[str, int] = field(default_factory=dict)
+    used: dict[str, str] = field(default_factory=dict)  # ratio -> the search auto ran
 
 
 def outdoor_run(corr: Correspondences, ratio: float, search: str, reps: int, threads: int):
@@ -389,6 +390,8 @@ def outdoor_run(corr: Correspondences, ratio: float, search: str, reps: int, thr
             kept.src, kept.tgt, g.kernel, g.alpha, g.tau, g.threshold, params.inlier_threshold,
             min_clique_size=params.min_clique_size, search=search, max_nodes=params.max_nodes,
             time_limit_s=params.time_limit_s, num_threads=threads, return_selected=True,
+            # only for auto: compare_cores.py runs this with builds of the core that predate it
+            **({"enumerate_budget": params.enumerate_budget} if search == "auto" else {}),
         )  # fmt: skip
         times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times), res
@@ -400,8 +403,8 @@ def bench_outdoor(args) -> list[OutdoorRow]:
     took = time.perf_counter() - t0
     print(f"\nOutdoor: {len(pairs)} pairs described (FPFH, 5,000 correspondences) in {took:.0f} s")
     head = (
-        f"{'pair':34} {'inl%':>5} | {'MAC bnb':>8} {'MAC enum':>9} {'x':>5} | {'FM20 bnb':>8} "
-        f"{'FM20 enum':>9} {'x':>5} | {'FM5 bnb':>8} | {'FM20/MAC':>8} | same 100/20 | RE100 RE20"
+        f"{'pair':34} {'inl%':>5} | {'MAC auto':>8} {'bnb':>8} {'enum':>9} | {'FM20 auto':>9} {'bnb':>8} "
+        f"{'enum':>9} | {'FM5 auto':>8} | {'FM20/MAC':>8} | same 100/20 | RE100 RE20"
     )
     print(head)
     print("-" * len(head))
@@ -410,28 +413,36 @@ def bench_outdoor(args) -> list[OutdoorRow]:
         row = OutdoorRow(name=name, inlier_ratio=float(corr.labels.mean()))
         for ratio in (1.0, 0.2, 0.05):
             key = {1.0: "100", 0.2: "20", 0.05: "5"}[ratio]
-            try:
-                ms, res = outdoor_run(corr, ratio, "bnb", args.reps, args.threads)
-            except FastMacError as exc:
-                row.cap[f"bnb{key}"] = f"failed: {exc}"
+            results = {}
+            # auto (the default) and bnb, repeated; the enumeration once (capped), as the reference
+            for search, reps in (("auto", args.reps), ("bnb", args.reps), ("enumerate", 1)):
+                if ratio == 0.05 and search != "auto":
+                    continue
+                tag = {"auto": "auto", "bnb": "bnb", "enumerate": "enum"}[search] + key
+                try:
+                    ms, res = outdoor_run(corr, ratio, search, reps, args.threads)
+                except FastMacError as exc:
+                    row.cap[tag] = f"failed: {exc}"
+                    continue
+                row.ms[tag] = ms
+                row.cap[tag] = res["cap_hit"]
+                results[search] = res
+            if "auto" not in results:
                 continue
-            row.ms[f"bnb{key}"] = ms
-            row.cap[f"bnb{key}"] = res["cap_hit"]
+            res = results["auto"]
             row.nodes[key] = int(res["search_nodes"])
+            row.used[key] = str(res.get("search_used", "?"))
             row.re_deg[key] = rotation_error_deg(res["pose"][:3, :3], gt[:3, :3])
-            if ratio == 0.05:
+            eres = results.get("enumerate")
+            if eres is None:
                 continue
-            try:
-                ems, eres = outdoor_run(corr, ratio, "enumerate", 1, args.threads)
-            except FastMacError as exc:
-                row.cap[f"enum{key}"] = f"failed: {exc}"
-                continue
-            row.ms[f"enum{key}"] = ems
-            row.cap[f"enum{key}"] = eres["cap_hit"]
             if eres["cap_hit"]:
                 row.same[key] = "capped"
             else:
-                same = [tuple(c) for c in res["selected"]] == [tuple(c) for c in eres["selected"]]
+                ref = [tuple(c) for c in eres["selected"]]
+                same = all(
+                    [tuple(c) for c in results[s]["selected"]] == ref for s in ("auto", "bnb") if s in results
+                )
                 row.same[key] = "yes" if same else "NO"
         m = row.ms
 
@@ -439,23 +450,25 @@ def bench_outdoor(args) -> list[OutdoorRow]:
             txt = fmt(m.get(k, float("nan")), w)
             return txt + ("*" if row.cap.get(k) else " ")
 
-        def ratio_cell(a, b, m=m):
-            return f"{m[b] / m[a]:5.1f}" if a in m and b in m and m[a] > 0 else "    -"
-
-        fm_over_mac = f"{m['bnb20'] / m['bnb100']:8.2f}" if "bnb20" in m and "bnb100" in m else "       -"
+        fm_over_mac = f"{m['auto20'] / m['auto100']:8.2f}" if "auto20" in m and "auto100" in m else "       -"
         print(
-            f"{name[:34]:34} {100 * row.inlier_ratio:5.1f} | {cell('bnb100')}{cell('enum100', 8)} "
-            f"{ratio_cell('bnb100', 'enum100')} | {cell('bnb20')}{cell('enum20', 8)} "
-            f"{ratio_cell('bnb20', 'enum20')} | {cell('bnb5')} | {fm_over_mac} | "
+            f"{name[:34]:34} {100 * row.inlier_ratio:5.1f} | {cell('auto100')}{cell('bnb100')}"
+            f"{cell('enum100', 8)} | {cell('auto20', 9)}{cell('bnb20')}{cell('enum20', 8)} | "
+            f"{cell('auto5')} | {fm_over_mac} | "
             f"{row.same.get('100', '-'):>4}/{row.same.get('20', '-'):<4}   | "
-            f"{row.re_deg.get('100', float('nan')):5.2f} {row.re_deg.get('20', float('nan')):5.2f}"
+            f"{row.re_deg.get('100', float('nan')):5.2f} {row.re_deg.get('20', float('nan')):5.2f}  "
+            f"auto ran {row.used.get('100', '-')}/{row.used.get('20', '-')}/{row.used.get('5', '-')}"
         )
         sys.stdout.flush()
         rows.append(row)
-    print("ms = median wall time of sampling + MAC from the correspondences (bnb: branch-and-bound")
-    print(f"selection, the default; enum: every maximal clique, one run, capped at {ENUM_CAP_S:g} s: '*' = a")
-    print("cap was hit); x =")
-    print("enum / bnb; same = identical selected cliques (capped: the enumeration did not finish).")
+    legend = (
+        "ms = median wall time of sampling + MAC from the correspondences. auto: the default search\n"
+        "(the enumeration within mac.enumerate_budget, else the branch and bound; 'auto ran' says which,\n"
+        "at 100/20/5 %); bnb: branch and bound; enum: every maximal clique, one run, capped at\n"
+        f"{ENUM_CAP_S:g} s; '*' = a cap was hit. same = auto's and bnb's selected cliques both identical\n"
+        "to the enumeration's (capped: the enumeration did not finish)."
+    )
+    print(legend)
     print()
     print("Outdoor targets (medians over the pairs of each set)")
     for tag, label in (("real:", "real KITTI/LiDAR/Apollo"), ("syn:", "synthetic KITTI-like")):
@@ -467,13 +480,14 @@ def bench_outdoor(args) -> list[OutdoorRow]:
             vals = [r.ms[k] for r in sel if k in r.ms]
             return statistics.median(vals) if vals else float("nan")
 
-        worst = max(max(r.ms.get(k, 0) for k in ("bnb100", "bnb20", "bnb5")) for r in sel)
+        worst = max(max(r.ms.get(k, 0) for k in ("auto100", "auto20", "auto5")) for r in sel)
         print(
-            f"  {label} ({len(sel)} pairs): MAC@100 {med('bnb100'):.0f} ms (target < 150), FastMAC@20 "
-            f"{med('bnb20'):.0f} ms (target < 30), FastMAC@5 {med('bnb5'):.0f} ms; FastMAC@20 / MAC = "
-            f"{med('bnb20') / med('bnb100'):.2f}; enumeration / bnb: "
-            f"MAC {med('enum100') / med('bnb100'):.1f}x, "
-            f"FastMAC@20 {med('enum20') / med('bnb20'):.1f}x (enumeration capped at {ENUM_CAP_S:g} s); "
+            f"  {label} ({len(sel)} pairs): MAC@100 {med('auto100'):.0f} ms (target < 150), FastMAC@20 "
+            f"{med('auto20'):.0f} ms (target < 30), FastMAC@5 {med('auto5'):.0f} ms; FastMAC@20 / MAC = "
+            f"{med('auto20') / med('auto100'):.2f}; bnb: MAC {med('bnb100'):.0f}, "
+            f"FastMAC@20 {med('bnb20'):.0f} ms; "
+            f"enumeration / auto: MAC {med('enum100') / med('auto100'):.1f}x, "
+            f"FastMAC@20 {med('enum20') / med('auto20'):.1f}x (enumeration capped at {ENUM_CAP_S:g} s); "
             f"slowest pair {worst:.0f} ms"
         )
         disagree = [r.name for r in sel if "NO" in r.same.values()]

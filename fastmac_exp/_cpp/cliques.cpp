@@ -115,6 +115,7 @@ inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 // and weighing a clique ~12 ns per member pair.
 constexpr int64_t kNodeWork = 16;
 constexpr int64_t kWorkBatch = 4096;
+constexpr int kLocalWeights = 96;  // roots with fewer candidates weigh their cliques locally
 
 struct Shared {
     std::atomic<bool> stop{false};
@@ -130,7 +131,7 @@ struct Shared {
 class Worker {
    public:
     Worker(const AdjGraph &g, int min_size, Shared &sh, CliqueSink &sink, int tid)
-        : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1) {}
+        : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1), vals_(sink.weights()) {}
 
     int64_t delivered = 0;
     int64_t unflushed = 0;  // work not yet added to sh_.found (give_up_work only)
@@ -170,17 +171,49 @@ class Worker {
         for (int k = 0; k < nl; ++k) loc_[L_[k]] = k;
         // Local adjacency from the rows of P only: P-P bits both ways, P-X bits into both rows. X-X bits
         // are never read (pivots count neighbours in P; X is only ever intersected with rows of P).
+        // Most of a sparse graph's search is this loop: each row is first compacted to its local
+        // neighbours without a branch, then written (through a register for one-word rows).
         adj_.assign((size_t)nl * W_, 0);
+        // With the sink's weights (node-guided selection), small roots keep their local weights, so
+        // that each clique is weighed from them (same values, same order: bit-identical to
+        // NodeChoice::weight, which searches the global rows and is used for larger roots)
+        local_w = vals_ != nullptr && np < kLocalWeights;
+        if (local_w) wl_.assign((size_t)(np + 1) * (np + 1), 0.0);
+        np_ = np;
         for (int k = 0; k < np; ++k) {
             uint64_t *row = adj_.data() + (size_t)k * W_;
             const int32_t u = L_[k];
-            for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
-                const int32_t x = loc_[g_.col[p]];
-                if (x < 0) continue;
-                row[x >> 6] |= uint64_t(1) << (x & 63);
-                if (x >= np) adj_[(size_t)x * W_ + (k >> 6)] |= uint64_t(1) << (k & 63);
+            const int64_t p0 = g_.ptr[u], len = g_.ptr[u + 1] - p0;
+            if ((int64_t)hit_.size() < len) hit_.resize(len);
+            int32_t *hit = hit_.data();
+            int64_t c = 0;
+            for (int64_t q = 0; q < len; ++q) {
+                const int32_t x = loc_[g_.col[p0 + q]];
+                hit[c] = (int32_t)q;
+                c += x >= 0;
             }
+            const uint64_t bit_k = uint64_t(1) << (k & 63);
+            uint64_t word = 0;
+            double *wrow = local_w ? wl_.data() + (size_t)k * (np + 1) : nullptr;
+            for (int64_t h = 0; h < c; ++h) {
+                const int32_t x = loc_[g_.col[p0 + hit[h]]];
+                if (W_ == 1)
+                    word |= uint64_t(1) << x;
+                else
+                    row[x >> 6] |= uint64_t(1) << (x & 63);
+                if (x >= np)
+                    adj_[(size_t)x * W_ + (k >> 6)] |= bit_k;
+                else if (wrow)
+                    wrow[x] = (*vals_)[p0 + hit[h]];
+            }
+            if (W_ == 1) row[0] |= word;
         }
+        if (local_w)  // the root's weights, as local index np
+            for (int64_t p = g_.ptr[v]; p < g_.ptr[v + 1]; ++p) {
+                const int32_t x = loc_[g_.col[p]];
+                if (x < 0 || x >= np) continue;
+                wl_[(size_t)np * (np + 1) + x] = wl_[(size_t)x * (np + 1) + np] = (*vals_)[p];
+            }
         for (int k = 0; k < nl; ++k) loc_[L_[k]] = -1;
 
         root_ = v;
@@ -199,7 +232,12 @@ class Worker {
     Shared &sh_;
     CliqueSink &sink_;
     const int tid_;
-    std::vector<int32_t> loc_, L_, R_;
+    std::vector<int32_t> loc_, L_, R_, hit_;
+    const std::vector<double> *vals_;  // the sink's edge weights (parallel to g_.col), or null
+    bool local_w = false;              // this root weighs its cliques from wl_
+    int np_ = 0;
+    std::vector<double> wl_;  // (np + 1)^2 local weights, the root last
+    std::vector<std::pair<int32_t, int32_t>> pairs_;
     std::vector<uint64_t> adj_;
     std::vector<std::vector<uint64_t>> levels_;  // per depth: P | X | candidates
     int W_ = 0, Wp_ = 0;
@@ -240,11 +278,28 @@ class Worker {
         }
         const int64_t k = (int64_t)R_.size() + 1;
         if (over_budget(k * (k - 1) / 2)) return;  // the sink weighs the clique: one lookup per pair
-        tmp_.clear();
-        tmp_.push_back(root_);
-        for (int32_t r : R_) tmp_.push_back(L_[r]);
-        std::sort(tmp_.begin(), tmp_.end());
-        sink_.add(tid_, tmp_.data(), tmp_.size());
+        if (local_w) {
+            // members ascending by node id with their local indices (the root is local index np_)
+            pairs_.clear();
+            pairs_.emplace_back(root_, np_);
+            for (int32_t r : R_) pairs_.emplace_back(L_[r], r);
+            std::sort(pairs_.begin(), pairs_.end());
+            tmp_.clear();
+            double w = 0.0;
+            const size_t stride = (size_t)np_ + 1;
+            for (size_t b = 0; b < pairs_.size(); ++b) {
+                tmp_.push_back(pairs_[b].first);
+                const double *wb = wl_.data() + (size_t)pairs_[b].second * stride;
+                for (size_t a = 0; a < b; ++a) w += wb[pairs_[a].second];
+            }
+            sink_.add_weighted(tid_, tmp_.data(), tmp_.size(), w);
+        } else {
+            tmp_.clear();
+            tmp_.push_back(root_);
+            for (int32_t r : R_) tmp_.push_back(L_[r]);
+            std::sort(tmp_.begin(), tmp_.end());
+            sink_.add(tid_, tmp_.data(), tmp_.size());
+        }
         ++delivered;
     }
 

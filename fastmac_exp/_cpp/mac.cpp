@@ -78,6 +78,8 @@ class SelectSink : public CliqueSink {
     explicit SelectSink(NodeChoice &choice) : choice_(choice) {}
     void start(int nthreads) override { choice_.start(nthreads); }
     void add(int tid, const int32_t *m, size_t k) override { choice_.offer(tid, m, k, choice_.weight(m, k)); }
+    const std::vector<double> *weights() const override { return &choice_.values(); }
+    void add_weighted(int tid, const int32_t *m, size_t k, double w) override { choice_.offer(tid, m, k, w); }
 
    private:
     NodeChoice &choice_;

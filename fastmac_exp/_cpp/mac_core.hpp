@@ -136,6 +136,10 @@ class CliqueSink {
     virtual ~CliqueSink() = default;
     virtual void start(int nthreads) = 0;  // before the search
     virtual void add(int tid, const int32_t *members, size_t k) = 0;
+    // A sink that weighs cliques (node-guided selection) may give its edge weights (parallel to the
+    // graph's col); the search then passes some cliques with their weight, summed as NodeChoice::weight.
+    virtual const std::vector<double> *weights() const { return nullptr; }
+    virtual void add_weighted(int tid, const int32_t *members, size_t k, double) { add(tid, members, k); }
 };
 
 // Bron-Kerbosch with pivoting, run from each vertex in degeneracy order (Eppstein-Loeffler-Strash),

@@ -65,6 +65,8 @@ class NodeChoice {
         return stored != nullptr;
     }
 
+    const std::vector<double> &values() const { return cgw_; }
+
     // The heaviest weight thread tid has seen for node v (0 = none).
     double best_weight(int tid, int32_t v) const { return threads_[tid].best_w[v]; }
     int threads() const { return (int)threads_.size(); }
