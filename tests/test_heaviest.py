@@ -240,3 +240,26 @@ def test_exploding_graph_is_fast_with_branch_and_bound():
         members = set(c)
         assert set(range(2 * pairs, n)) <= members
         assert all((2 * p in members) != (2 * p + 1 in members) for p in range(pairs))
+
+
+def test_enumerate_budget_is_a_checked_mac_parameter():
+    from fastmac_exp.backends import cpp as cpp_backend
+    from fastmac_exp.errors import InputError
+    from fastmac_exp.params import mac_params_for
+    from fastmac_exp.types import Correspondences
+    from tests.test_cpp_core import clustered
+
+    with pytest.raises(InputError, match="enumerate_budget"):
+        mac_params_for("3dmatch", "fpfh", mac_overrides={"enumerate_budget": -1})
+    with pytest.raises(InputError, match="search"):
+        mac_params_for("3dmatch", "fpfh", mac_overrides={"search": "fast"})
+    src, tgt, _, _ = clustered(400, 0.3, 0.002, seed=9, extent=3.0)
+    corr = Correspondences(src, tgt)
+    results = {
+        budget: cpp_backend.CppBackend().register(
+            corr, mac_params_for("3dmatch", "fpfh", mac_overrides={"enumerate_budget": budget})
+        )
+        for budget in (None, 0)
+    }
+    assert results[None].search == "auto:enumerate" and results[0].search == "auto:bnb"
+    np.testing.assert_array_equal(results[None].pose, results[0].pose)
