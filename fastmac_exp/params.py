@@ -51,13 +51,14 @@ SEARCHES = ("auto", "bnb", "enumerate")
 # spec-2.5 reduction, 342 missing edges, 8e6 nodes / 9 s exactly; capped at 1e6 its pose is 0.0008 deg and
 # 8 um from the exact one). A run that spends it says so in `cap_hit` (the same on every machine).
 DEFAULT_MAX_NODES = 1_000_000
-# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget (16
-# units a search node, 1 a member pair of each clique found), else runs the branch and bound. The units
-# were measured on real pairs: a node ~190 ns, a pair ~12 ns, so the budget is ~30 ms of one core. Sparse
-# graphs (real 3DMatch and the sparser real KITTI and Apollo FPFH graphs: 1.1-1.7M units, 23k-35k maximal
-# cliques) enumerate 2-3x faster than the branch and bound bounds them; a graph over budget pays that much
-# enumeration first (~15 ms on 2 cores). The answer is a property of the graph, not of threads or timing.
-DEFAULT_ENUMERATE_BUDGET = 2_500_000
+# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget, else
+# runs the branch and bound. Work is counted in units of about a nanosecond of one core (measured on real
+# pairs): 160 a search node, 1 a member pair of each clique found weighed from a root's local weights (12 from
+# the global rows, roots of 96 or more candidates), so the budget is ~30 ms of one core. Sparse graphs (real
+# 3DMatch and the sparser real KITTI and Apollo FPFH graphs: 10-15M units, 23k-35k maximal cliques) enumerate
+# 2-3x faster than the branch and bound bounds them; a graph over budget pays that much enumeration first
+# (~15-20 ms on 2 cores). Whether it is over budget is a property of the graph, not of threads or timing.
+DEFAULT_ENUMERATE_BUDGET = 30_000_000
 
 
 @dataclass(frozen=True)

@@ -157,7 +157,7 @@ def test_auto_gives_the_enumeration_up_exactly_above_its_budget():
         for t in (1, 2, 3)
     }
     work = works[1]
-    assert works == {1: work, 2: work, 3: work} and work > 16 * 2**pairs
+    assert works == {1: work, 2: work, 3: work} and work > 160 * 2**pairs  # a search node per clique
     for threads in (1, 2, 3):
         for budget, used in ((work, "enumerate"), (work - 1, "bnb"), (0, "bnb")):
             got, out = selection(n, i, j, w, 3, "auto", threads, enumerate_budget=budget)
@@ -233,9 +233,11 @@ def test_exploding_graph_is_fast_with_branch_and_bound():
     w = second_order_weights(a, np.random.default_rng(0))
     got, out = selection(n, i, j, w, 3, "bnb", 2)
     enum, eout = selection(n, i, j, w, 3, "enumerate", 2)
+    auto, aout = selection(n, i, j, w, 3, "auto", 2)  # the default budget: far less than 2^16 big cliques
     assert eout["n_cliques"] == 2**pairs
-    assert got == enum
+    assert got == enum == auto
     assert out["cap_hit"] == "" and out["search_nodes"] < 20_000
+    assert aout["search_used"] == "bnb" and aout["search_nodes"] == out["search_nodes"]
     for c in got:  # one endpoint of each missing pair and every other vertex
         members = set(c)
         assert set(range(2 * pairs, n)) <= members

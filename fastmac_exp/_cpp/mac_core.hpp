@@ -120,9 +120,10 @@ struct CliqueCaps {
     int64_t max_cliques = 0;    // enumeration: stop after this many maximal cliques; 0 = no cap
     int64_t max_nodes = 0;      // branch and bound: search-tree nodes; 0 = no cap
     double time_limit_s = 0.0;  // 0 = no limit
-    // search "auto": enumerate, and give the enumeration up for the branch and bound once its work
-    // (16 units a search node, 1 a member pair of each clique found, which the selection weighs) is above
-    // this: a property of the graph, the same answer for any thread count and machine load
+    // search "auto": enumerate, and give the enumeration up for the branch and bound once its work (in
+    // units of about a nanosecond: 160 a search node, 1-12 a member pair of each clique found, which the
+    // selection weighs; cliques.cpp) is above this: a property of the graph, the same answer for any
+    // thread count and machine load
     int64_t give_up_work = 0;
 };
 
@@ -207,7 +208,7 @@ class Scorer {
 // work stays within CliqueCaps::give_up_work (sparse graphs, where it is the faster of the two), else the
 // branch and bound. All three give the same selection where they finish.
 enum class Search { Heaviest, Enumerate, Auto };
-constexpr int64_t kEnumerateBudget = 2500000;  // Auto's default give_up_work (mac.enumerate_budget)
+constexpr int64_t kEnumerateBudget = 30000000;  // Auto's default give_up_work (mac.enumerate_budget)
 Search parse_search(const std::string &name);  // "bnb" | "enumerate" | "auto"; throws std::invalid_argument
 const char *search_name(Search s);
 
