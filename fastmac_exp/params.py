@@ -51,14 +51,15 @@ SEARCHES = ("auto", "bnb", "enumerate")
 # spec-2.5 reduction, 342 missing edges, 8e6 nodes / 9 s exactly; capped at 1e6 its pose is 0.0008 deg and
 # 8 um from the exact one). A run that spends it says so in `cap_hit` (the same on every machine).
 DEFAULT_MAX_NODES = 1_000_000
-# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget, else
-# runs the branch and bound. Work is counted in units of about a nanosecond of one core (measured on real
-# pairs): 160 a search node, 1 a member pair of each clique found weighed from a root's local weights (12 from
-# the global rows, roots of 96 or more candidates), so the budget is ~30 ms of one core. Sparse graphs (real
-# 3DMatch and the sparser real KITTI and Apollo FPFH graphs: 10-15M units, 23k-35k maximal cliques) enumerate
-# 2-3x faster than the branch and bound bounds them; a graph over budget pays that much enumeration first
-# (~15-20 ms on 2 cores). Whether it is over budget is a property of the graph, not of threads or timing.
-DEFAULT_ENUMERATE_BUDGET = 30_000_000
+# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget per node
+# that can be in a clique, else runs the branch and bound. Work is counted in units of about a nanosecond of
+# one core (measured on real pairs): 160 a search node, 1 a member pair of each clique found weighed from a
+# root's local weights (12 from the global rows, roots of 96 or more candidates). Sparse graphs (real 3DMatch
+# and the sparser real KITTI and Apollo FPFH graphs: 2,000-3,000 units a node, 23k-35k maximal cliques among
+# 5,000 nodes) enumerate 2-3x faster than the branch and bound bounds them; a graph over budget pays that much
+# enumeration first (at most ~30 ms of a core on 5,000 nodes, ~6 ms on FastMAC@20's 1,000). Whether it is over
+# budget is a property of the graph, not of threads or timing.
+DEFAULT_ENUMERATE_BUDGET = 6_000
 
 
 @dataclass(frozen=True)
@@ -73,14 +74,15 @@ class MacParams:
     # How node-guided selection finds its cliques: "bnb" = each node's heaviest clique by branch and
     # bound (exact: the same selection as enumerating every maximal clique); "enumerate" = every maximal
     # clique (the reference; the only search of the Python backend); "auto" = the enumeration while its
-    # work stays within `enumerate_budget`, else the branch and bound (the same selection either way; the
-    # row's `search` says which ran: "auto:enumerate" or "auto:bnb"). max_cliques applies to "enumerate".
+    # work stays within `enumerate_budget` a node, else the branch and bound (the same selection either
+    # way; the row's `search` says which ran: "auto:enumerate" or "auto:bnb"). max_cliques applies to
+    # "enumerate".
     search: str = "auto"
     # Work budgets (0 = off): a capped result is the same on any machine and thread count, and says so
     # in `cap_hit`. max_cliques bounds the enumeration, max_nodes the branch and bound.
     max_cliques: int = 0
     max_nodes: int = DEFAULT_MAX_NODES
-    enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # search="auto" only; 0 = always the branch and bound
+    enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # auto only, work units a node; 0 = always bnb
     time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
 
     def __post_init__(self) -> None:

@@ -143,9 +143,9 @@ def test_mac_default_search_is_auto_and_all_searches_agree():
 
 
 def test_auto_gives_the_enumeration_up_exactly_above_its_budget():
-    """2^12 maximal cliques: the enumeration's work is the same number for 1, 2 and 3 threads (a property
-    of the graph), auto enumerates with exactly that budget and switches to the branch and bound one unit
-    below it, with the same selection either way."""
+    """2^12 maximal cliques on 40 nodes: the enumeration's work is the same number for 1, 2 and 3 threads (a
+    property of the graph); auto enumerates while the budget a node times the 40 nodes covers it and switches
+    to the branch and bound just below, with the same selection either way."""
     n, pairs = 40, 12
     a = np.triu(np.ones((n, n), dtype=bool), 1)
     a[np.arange(0, 2 * pairs, 2), np.arange(1, 2 * pairs + 1, 2)] = False
@@ -153,13 +153,13 @@ def test_auto_gives_the_enumeration_up_exactly_above_its_budget():
     w = second_order_weights(a, np.random.default_rng(1))
     ref, _ = selection(n, i, j, w, 3, "enumerate")
     works = {
-        t: selection(n, i, j, w, 3, "auto", t, enumerate_budget=10**12)[1]["enumerate_work"]
-        for t in (1, 2, 3)
+        t: selection(n, i, j, w, 3, "auto", t, enumerate_budget=10**9)[1]["enumerate_work"] for t in (1, 2, 3)
     }
     work = works[1]
     assert works == {1: work, 2: work, 3: work} and work > 160 * 2**pairs  # a search node per clique
+    enough, short = -(-work // n), (work - 1) // n  # n * enough >= work > n * short
     for threads in (1, 2, 3):
-        for budget, used in ((work, "enumerate"), (work - 1, "bnb"), (0, "bnb")):
+        for budget, used in ((enough, "enumerate"), (short, "bnb"), (0, "bnb")):
             got, out = selection(n, i, j, w, 3, "auto", threads, enumerate_budget=budget)
             assert out["search_used"] == used and out["cap_hit"] == ""
             if used == "enumerate":

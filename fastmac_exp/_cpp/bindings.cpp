@@ -191,7 +191,7 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
         caps.max_cliques = max_cliques;
         caps.max_nodes = max_nodes;
         caps.time_limit_s = time_limit_s;
-        caps.give_up_work = enumerate_budget;
+        caps.enumerate_work_per_node = enumerate_budget;
         fastmac::NodeChoice choice(g, vals);
         n_cliques =
             fastmac::clique_search(g, vals, min_size, how, caps, cap_hit, nodes, num_threads, choice, &used, &work);
@@ -333,7 +333,8 @@ NB_MODULE(_mac_core, m) {
           "Node-guided clique selection (spec 4) on the graph with positive edge weights w: a dict with "
           "'cliques' (the selected cliques in hypothesis order), 'n_cliques' (maximal cliques enumerated, or "
           "cliques offered by the branch and bound), 'search_nodes', 'search_used' (what 'auto' ran), "
-          "'enumerate_work' (auto's enumeration work, against enumerate_budget) and 'cap_hit'.");
+          "'enumerate_work' (auto's enumeration work, against enumerate_budget times the nodes that can be "
+          "in a clique) and 'cap_hit'.");
     m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,
           "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),

@@ -148,7 +148,7 @@ int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int mi
                       NodeChoice &choice, Search *used, int64_t *work) {
     search_nodes = 0;
     if (work) *work = 0;
-    if (search == Search::Enumerate || (search == Search::Auto && caps.give_up_work > 0)) {
+    if (search == Search::Enumerate || (search == Search::Auto && caps.enumerate_work_per_node > 0)) {
         SelectSink sink(choice);
         if (search == Search::Enumerate) {
             if (used) *used = Search::Enumerate;
@@ -157,6 +157,9 @@ int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int mi
         // Auto: the enumeration with a give-up count (not max_cliques: a partial list is never used here)
         CliqueCaps first = caps;
         first.max_cliques = 0;
+        int64_t active = 0;  // the nodes that can be in a clique
+        for (int64_t v = 0; v < g.n; ++v) active += g.ptr[v + 1] - g.ptr[v] + 1 >= min_size;
+        first.give_up_work = std::max<int64_t>(1, caps.enumerate_work_per_node * active);
         bool gave_up = false;
         const auto t0 = Clock::now();
         const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &gave_up, work);
@@ -260,7 +263,7 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     caps.max_cliques = p.max_cliques;
     caps.max_nodes = p.max_nodes;
     caps.time_limit_s = p.time_limit_s;
-    caps.give_up_work = p.enumerate_budget;
+    caps.enumerate_work_per_node = p.enumerate_budget;
     NodeChoice choice(cg, cgw);
     res.n_cliques = clique_search(cg, cgw, p.min_clique_size, p.search, caps, res.cap_hit, res.search_nodes,
                                   nthreads, choice, &res.search_used, &res.enumerate_work);
