@@ -51,15 +51,16 @@ SEARCHES = ("auto", "bnb", "enumerate")
 # spec-2.5 reduction, 342 missing edges, 8e6 nodes / 9 s exactly; capped at 1e6 its pose is 0.0008 deg and
 # 8 um from the exact one). A run that spends it says so in `cap_hit` (the same on every machine).
 DEFAULT_MAX_NODES = 1_000_000
-# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget per node
-# that can be in a clique, else runs the branch and bound. Work is counted in units of about a nanosecond of
-# one core (measured on real pairs): 160 a search node, 1 a member pair of each clique found weighed from a
-# root's local weights (12 from the global rows, roots of 96 or more candidates). Sparse graphs (real 3DMatch
-# and the sparser real KITTI and Apollo FPFH graphs: 2,000-3,000 units a node, 23k-35k maximal cliques among
-# 5,000 nodes) enumerate 2-3x faster than the branch and bound bounds them; a graph over budget pays that much
-# enumeration first (at most ~30 ms of a core on 5,000 nodes, ~6 ms on FastMAC@20's 1,000). Whether it is over
-# budget is a property of the graph, not of threads or timing.
-DEFAULT_ENUMERATE_BUDGET = 6_000
+# search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget per
+# node that can be in a clique, else runs the branch and bound. Work is counted in units of about a
+# nanosecond of one core (measured on real pairs): 160 a search node, 1 a member pair of each clique found
+# weighed from a root's local weights (12 from the global rows, roots of 96 or more candidates). Sparse
+# graphs (real 3DMatch and the sparser real KITTI and Apollo FPFH graphs: 2,000-3,000 units a node, 23k-35k
+# maximal cliques among 5,000 nodes) enumerate 2-3x faster than the branch and bound bounds them, and graphs
+# of ~100k maximal cliques (10,000-13,000 units a node) still about 2x faster; a graph over budget pays that
+# much enumeration first (at most ~80 ms of a core on 5,000 nodes, ~16 ms on FastMAC@20's 1,000). Whether
+# it is over budget is a property of the graph, not of threads or timing.
+DEFAULT_ENUMERATE_BUDGET = 16_000
 
 
 @dataclass(frozen=True)
