@@ -173,8 +173,8 @@ class Worker {
         for (int k = 0; k < nl; ++k) loc_[L_[k]] = k;
         // Local adjacency from the rows of P only: P-P bits both ways, P-X bits into both rows. X-X bits
         // are never read (pivots count neighbours in P; X is only ever intersected with rows of P).
-        // Most of a sparse graph's search is this loop: each row is first compacted to its local
-        // neighbours without a branch, then written (through a register for one-word rows).
+        // Each row is first compacted to its local neighbours, then written (through a register for
+        // one-word rows).
         adj_.assign((size_t)nl * W_, 0);
         // With the sink's weights (node-guided selection), small roots keep their local weights, so
         // that each clique is weighed from them (same values, same order: bit-identical to
@@ -185,15 +185,8 @@ class Worker {
         for (int k = 0; k < np; ++k) {
             uint64_t *row = adj_.data() + (size_t)k * W_;
             const int32_t u = L_[k];
-            const int64_t p0 = g_.ptr[u], len = g_.ptr[u + 1] - p0;
-            if ((int64_t)hit_.size() < len) hit_.resize(len);
-            int32_t *hit = hit_.data();
-            int64_t c = 0;
-            for (int64_t q = 0; q < len; ++q) {
-                const int32_t x = loc_[g_.col[p0 + q]];
-                hit[c] = (int32_t)q;
-                c += x >= 0;
-            }
+            const int64_t p0 = g_.ptr[u], c = local_neighbours(g_, loc_, u, hit_);
+            const int32_t *hit = hit_.data();
             const uint64_t bit_k = uint64_t(1) << (k & 63);
             uint64_t word = 0;
             double *wrow = local_w ? wl_.data() + (size_t)k * (np + 1) : nullptr;

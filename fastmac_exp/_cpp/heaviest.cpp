@@ -192,21 +192,14 @@ class Searcher {
         // candidate-excluded bits into both rows. Excluded-excluded bits are never read (pivots count
         // neighbours among the candidates; X is only ever intersected with candidates' rows), and
         // excluded vertices never join a clique here, so weights are among the candidates only.
-        // This loop is most of a sparse graph's search: each candidate's row is first compacted to its
-        // local neighbours without a branch, then written (a register for one-word rows).
+        // Each candidate's row is first compacted to its local neighbours (local_neighbours), then
+        // written (through a register for one-word rows).
         adj_.assign((size_t)nl_ * W_, 0);
         gm_.assign((size_t)np_ * np_, 0.0);
         for (int k = 0; k < np_; ++k) {
             const int32_t u = L_[k];
-            const int64_t p0 = g_.ptr[u], len = g_.ptr[u + 1] - p0;
-            if ((int64_t)hit_.size() < len) hit_.resize(len);
-            int32_t *hit = hit_.data();
-            int64_t c = 0;
-            for (int64_t q = 0; q < len; ++q) {
-                const int32_t x = loc_[g_.col[p0 + q]];
-                hit[c] = (int32_t)q;
-                c += x >= 0;
-            }
+            const int64_t p0 = g_.ptr[u], c = local_neighbours(g_, loc_, u, hit_);
+            const int32_t *hit = hit_.data();
             uint64_t *row = adj_.data() + (size_t)k * W_;
             double *grow = gm_.data() + (size_t)k * np_;
             const uint64_t bit_k = uint64_t(1) << (k & 63);
