@@ -89,9 +89,14 @@ class MacParams:
     def __post_init__(self) -> None:
         if self.search not in SEARCHES:
             raise InputError(f"mac.search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
-        for name in ("max_cliques", "max_nodes", "enumerate_budget"):
+        for name in ("max_cliques", "max_nodes"):
             if getattr(self, name) < 0:
                 raise InputError(f"mac.{name} must be >= 0 (0 = no cap), got {getattr(self, name)}")
+        if self.enumerate_budget < 0:
+            raise InputError(
+                "mac.enumerate_budget must be >= 0 (0 = the branch and bound at once), "
+                f"got {self.enumerate_budget}"
+            )
         if self.time_limit_s < 0:
             raise InputError(f"mac.time_limit_s must be >= 0 (0 = no limit), got {self.time_limit_s}")
         if self.inlier_threshold <= 0:

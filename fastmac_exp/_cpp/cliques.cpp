@@ -121,10 +121,11 @@ constexpr int kLocalWeights = 96;  // roots with fewer candidates weigh their cl
 
 struct Shared {
     std::atomic<bool> stop{false};
-    std::atomic<int64_t> found{0};
+    std::atomic<int64_t> found{0};  // cliques (max_cliques only)
+    std::atomic<int64_t> work{0};   // work units (give_up_work only)
     std::atomic<int> why{0};  // 1 = max_cliques, 2 = time limit, 3 = interrupted, 4 = gave up
     int64_t max_cliques = 0;
-    int64_t give_up_work = 0;  // in work units (kNodeWork a search node, 1 or kGlobalPairWork a pair)
+    int64_t give_up_work = 0;  // kNodeWork a search node, 1 or kGlobalPairWork a pair; 0 = never
     Interrupt *interrupt = nullptr;  // polled by thread 0 (the caller) only
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
@@ -136,11 +137,11 @@ class Worker {
         : g_(g), min_size_(min_size), sh_(sh), sink_(sink), tid_(tid), loc_(g.n, -1), vals_(sink.weights()) {}
 
     int64_t delivered = 0;
-    int64_t unflushed = 0;  // work not yet added to sh_.found (give_up_work only)
+    int64_t unflushed = 0;  // work not yet added to sh_.work (give_up_work only)
 
     // Adds the unflushed work to the shared total; true when the total is above give_up_work.
     bool flush() {
-        const int64_t k = sh_.found.fetch_add(unflushed) + unflushed;
+        const int64_t k = sh_.work.fetch_add(unflushed) + unflushed;
         unflushed = 0;
         return k > sh_.give_up_work;
     }
@@ -273,27 +274,23 @@ class Worker {
         }
         const int64_t k = (int64_t)R_.size() + 1;
         if (over_budget(k * (k - 1) / 2 * (local_w ? 1 : kGlobalPairWork))) return;  // weighing it
-        if (local_w) {
-            // members ascending by node id with their local indices (the root is local index np_)
-            pairs_.clear();
-            pairs_.emplace_back(root_, np_);
-            for (int32_t r : R_) pairs_.emplace_back(L_[r], r);
-            std::sort(pairs_.begin(), pairs_.end());
-            tmp_.clear();
+        // members ascending by node id, with their local indices (the root is local index np_)
+        pairs_.clear();
+        pairs_.emplace_back(root_, np_);
+        for (int32_t r : R_) pairs_.emplace_back(L_[r], r);
+        std::sort(pairs_.begin(), pairs_.end());
+        tmp_.clear();
+        for (const auto &m : pairs_) tmp_.push_back(m.first);
+        if (!local_w) {
+            sink_.add(tid_, tmp_.data(), tmp_.size());
+        } else {  // NodeChoice::weight's order: pairs (a, b), a < b, by b then a
             double w = 0.0;
             const size_t stride = (size_t)np_ + 1;
-            for (size_t b = 0; b < pairs_.size(); ++b) {
-                tmp_.push_back(pairs_[b].first);
+            for (size_t b = 1; b < pairs_.size(); ++b) {
                 const double *wb = wl_.data() + (size_t)pairs_[b].second * stride;
                 for (size_t a = 0; a < b; ++a) w += wb[pairs_[a].second];
             }
             sink_.add_weighted(tid_, tmp_.data(), tmp_.size(), w);
-        } else {
-            tmp_.clear();
-            tmp_.push_back(root_);
-            for (int32_t r : R_) tmp_.push_back(L_[r]);
-            std::sort(tmp_.begin(), tmp_.end());
-            sink_.add(tid_, tmp_.data(), tmp_.size());
         }
         ++delivered;
     }
@@ -361,9 +358,9 @@ class Worker {
 }  // namespace
 
 int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                                  int nthreads, CliqueSink &sink, bool *gave_up, int64_t *work) {
+                                  int nthreads, CliqueSink &sink, GiveUp *give_up) {
     cap_hit.clear();
-    if (gave_up) *gave_up = false;
+    if (give_up) give_up->gave_up = false;
     if (min_size < 1) min_size = 1;
     nthreads = resolve_threads(nthreads, g.n);
     // With a count cap, run serially so that the partial set is reproducible.
@@ -375,7 +372,7 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
 
     Shared sh;
     sh.max_cliques = caps.max_cliques;
-    sh.give_up_work = gave_up ? caps.give_up_work : 0;
+    sh.give_up_work = give_up ? std::max<int64_t>(1, give_up->above) : 0;
     if (caps.time_limit_s > 0) {
         sh.timed = true;
         sh.deadline = std::chrono::steady_clock::now() +
@@ -413,10 +410,12 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             }
     });
     if (sh.why.load() == 3) throw Interrupted();
-    if (work) *work = sh.give_up_work > 0 ? sh.found.load() : 0;
-    if (sh.why.load() == 4) {  // more work than give_up_work: the caller searches otherwise
-        *gave_up = true;
-        return 0;
+    if (give_up) {
+        give_up->work = sh.work.load();
+        if (sh.why.load() == 4) {  // more work than the budget: the caller searches otherwise
+            give_up->gave_up = true;
+            return 0;
+        }
     }
 
     if (sh.why.load() == 1) cap_hit = "max_cliques=" + std::to_string(caps.max_cliques);

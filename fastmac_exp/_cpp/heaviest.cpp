@@ -22,7 +22,7 @@
 //     targets between them were tried: 1.6x the speed per node on 2 cores, but up to 2.3x the nodes on
 //     dense synthetic KITTI-like graphs, where the first roots raise many targets.)
 // The default search ("auto", mac.cpp) runs the enumeration first, under a work budget: on sparse
-// graphs it is 2-3x faster than this search; this one takes over where the enumeration explodes.
+// graphs it is 1.5-3x faster than this search; this one takes over where the enumeration explodes.
 // The branch and bound (per search): candidates P with a greedy colouring in independent sets (Tomita's
 // MCQ/MCS), a clique takes one vertex per colour class at most; visiting the classes in order, each
 // member contributes its attachment to R (sum of G to the chosen vertices) plus at most, for every

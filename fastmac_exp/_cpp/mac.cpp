@@ -148,32 +148,33 @@ int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int mi
                       NodeChoice &choice, Search *used, int64_t *work) {
     search_nodes = 0;
     if (work) *work = 0;
-    if (search == Search::Enumerate || (search == Search::Auto && caps.enumerate_work_per_node > 0)) {
-        SelectSink sink(choice);
-        if (search == Search::Enumerate) {
-            if (used) *used = Search::Enumerate;
-            return enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
-        }
-        // Auto: the enumeration with a give-up count (not max_cliques: a partial list is never used here)
+    SelectSink sink(choice);
+    if (search == Search::Enumerate) {
+        if (used) *used = Search::Enumerate;
+        return enumerate_maximal_cliques(g, min_size, caps, cap_hit, nthreads, sink);
+    }
+    CliqueCaps rest = caps;
+    if (search == Search::Auto && caps.enumerate_work_per_node > 0) {
+        // the enumeration under its work budget (max_cliques is for search=enumerate: a partial list is
+        // never used here)
         CliqueCaps first = caps;
         first.max_cliques = 0;
+        GiveUp give_up;
         int64_t active = 0;  // the nodes that can be in a clique
         for (int64_t v = 0; v < g.n; ++v) active += g.ptr[v + 1] - g.ptr[v] + 1 >= min_size;
-        first.give_up_work = std::max<int64_t>(1, caps.enumerate_work_per_node * active);
-        bool gave_up = false;
+        give_up.above = caps.enumerate_work_per_node * active;
         const auto t0 = Clock::now();
-        const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &gave_up, work);
-        if (!gave_up) {
+        const int64_t found = enumerate_maximal_cliques(g, min_size, first, cap_hit, nthreads, sink, &give_up);
+        if (work) *work = give_up.work;
+        if (!give_up.gave_up) {
             if (used) *used = Search::Enumerate;
             return found;
         }
-        CliqueCaps rest = caps;  // the time limit covers both searches together
+        // the time limit covers both searches together
         if (rest.time_limit_s > 0) rest.time_limit_s = std::max(1e-6, rest.time_limit_s - ms_since(t0) / 1e3);
-        if (used) *used = Search::Heaviest;
-        return heaviest_cliques(g, vals, min_size, rest, cap_hit, search_nodes, nthreads, choice);
     }
     if (used) *used = Search::Heaviest;
-    return heaviest_cliques(g, vals, min_size, caps, cap_hit, search_nodes, nthreads, choice);
+    return heaviest_cliques(g, vals, min_size, rest, cap_hit, search_nodes, nthreads, choice);
 }
 
 CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,

@@ -135,14 +135,18 @@ struct CliqueCaps {
     int64_t max_cliques = 0;    // enumeration: stop after this many maximal cliques; 0 = no cap
     int64_t max_nodes = 0;      // branch and bound: search-tree nodes; 0 = no cap
     double time_limit_s = 0.0;  // 0 = no limit
-    // search "auto": enumerate, and give the enumeration up for the branch and bound once its work (in
-    // units of about a nanosecond: 160 a search node, 1-12 a member pair of each clique found, which the
-    // selection weighs; cliques.cpp) is above this: a property of the graph, the same answer for any
-    // thread count and machine load
-    int64_t give_up_work = 0;
-    // search "auto" (clique_search): the enumeration's budget per node that can be in a clique (degree
-    // >= min_size - 1), which clique_search turns into give_up_work; 0 = the branch and bound at once
+    // search "auto" (clique_search): the enumeration's work budget per node that can be in a clique
+    // (degree >= min_size - 1); 0 = the branch and bound at once
     int64_t enumerate_work_per_node = 0;
+};
+
+// An enumeration that is given up once its work is above `above` (in units of about a nanosecond of a
+// core: 160 a search node, 1-12 a member pair of each clique found, which the selection weighs; see
+// cliques.cpp). Whether it is given up is a property of the graph, the same for any thread count and load.
+struct GiveUp {
+    int64_t above = 0;
+    bool gave_up = false;  // out
+    int64_t work = 0;      // out: the work counted (all of it unless the enumeration gave up)
 };
 
 // Vertices in degeneracy (smallest-last) order.
@@ -164,12 +168,10 @@ class CliqueSink {
 // Bron-Kerbosch with pivoting, run from each vertex in degeneracy order (Eppstein-Loeffler-Strash),
 // over every maximal clique of size >= min_size. Returns how many were delivered; when a cap stops the
 // search, cap_hit names it. With max_cliques the search runs serially (a reproducible partial set).
-// With gave_up given and caps.give_up_work > 0, the search stops once its work is above that, sets
-// *gave_up and returns 0; what the sink received is then to be discarded. *work: the work counted
-// (all of it when the search did not give up).
+// With give_up, the search stops once its work is above give_up->above, sets give_up->gave_up and
+// returns 0; what the sink received is then to be discarded.
 int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueCaps &caps, std::string &cap_hit,
-                                  int nthreads, CliqueSink &sink, bool *gave_up = nullptr,
-                                  int64_t *work = nullptr);
+                                  int nthreads, CliqueSink &sink, GiveUp *give_up = nullptr);
 
 // Every maximal clique of size >= min_size, members ascending, the list in lexicographic (canonical)
 // order. When a cap stops the search, cap_hit names it and the partial list is returned.
@@ -223,8 +225,8 @@ class Scorer {
 
 // How node-guided selection finds its cliques: per-node heaviest cliques by branch and bound (exact),
 // every maximal clique (the reference enumeration), or Auto (the default): the enumeration while its
-// work stays within CliqueCaps::enumerate_work_per_node a node (sparse graphs, where it is the faster of the two), else the
-// branch and bound. All three give the same selection where they finish.
+// work stays within CliqueCaps::enumerate_work_per_node a node (sparse graphs, where it is the faster
+// of the two), else the branch and bound. All three give the same selection where they finish.
 enum class Search { Heaviest, Enumerate, Auto };
 // Auto's default enumerate_work_per_node (mac.enumerate_budget). Sparse real graphs take 2,000-3,000 units a
 // node (5,000 nodes: 10-15M units, ~10-15 ms of a core); real graphs with ~100k maximal cliques take 10,000-
@@ -237,7 +239,7 @@ const char *search_name(Search s);
 
 // The clique search of node-guided selection, into choice (started here). Returns n_cliques (see
 // MacResult); *used: the search that produced the result (Auto resolves to one of the other two);
-// *work: Auto's enumeration work (CliqueCaps::give_up_work), partial when it gave up.
+// *work: Auto's enumeration work (GiveUp::work), partial when it gave up.
 int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                       const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
                       NodeChoice &choice, Search *used, int64_t *work = nullptr);
@@ -251,7 +253,7 @@ struct MacParams {
     Search search = Search::Auto;
     int64_t max_cliques = 0;  // enumeration budget
     int64_t max_nodes = 0;    // branch-and-bound budget
-    int64_t enumerate_budget = 0;  // Auto: CliqueCaps::enumerate_work_per_node (0: the bnb at once)
+    int64_t enumerate_budget = kEnumerateBudget;  // Auto: CliqueCaps::enumerate_work_per_node
     double time_limit_s = 0.0;
     bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
 };
