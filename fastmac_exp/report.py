@@ -103,7 +103,9 @@ def aggregate(table: pd.DataFrame) -> pd.DataFrame:
     Columns: pairs, failed, registered, RR (% of all pairs; failed pairs count as not registered), RE_deg
     and TE_cm (means over successful pairs), inlier_ratio_in/kept (means), t_<stage>_ms (medians over the
     pairs that have a time), seeds (distinct seeds), RR_seed_mean and RR_seed_std (% across the per-seed
-    RRs, sample std; NaN unless >= 2 seeds). Sorted by the keys with the ratio descending.
+    RRs, sample std; NaN unless >= 2 seeds), searches (how many pairs each clique search ran, e.g.
+    "auto:bnb 7, auto:enumerate 1"; "" without a search column) and capped (pairs whose search hit a cap).
+    Sorted by the keys with the ratio descending.
     """
     keys = group_keys(table)
     t = table.copy()
@@ -142,6 +144,8 @@ def aggregate(table: pd.DataFrame) -> pd.DataFrame:
         for s in REPORT_STAGES:
             c = f"t_{s}_ms"
             row[c] = float(g[c].median()) if c in g and g[c].notna().any() else math.nan
+        row["searches"] = _search_counts(g["search"]) if "search" in g else ""
+        row["capped"] = int((g["cap_hit"].fillna("").astype(str) != "").sum()) if "cap_hit" in g else 0
         seeds = g["seed"].dropna().unique() if "seed" in g else []
         row["seeds"] = len(seeds)
         if len(seeds) >= 2:
@@ -156,6 +160,13 @@ def aggregate(table: pd.DataFrame) -> pd.DataFrame:
         asc = [k != "ratio" for k in keys]
         out = out.sort_values(keys, ascending=asc, kind="stable").reset_index(drop=True)
     return out
+
+
+def _search_counts(col: pd.Series) -> str:
+    """'auto:bnb 7, auto:enumerate 1': pairs per search that ran (sorted by name; empty cells skipped)."""
+    names = col.dropna().astype(str)
+    counts = names[names != ""].value_counts()
+    return ", ".join(f"{name} {counts[name]}" for name in sorted(counts.index))
 
 
 def method_label(row: pd.Series | dict, keys: Iterable[str] = ("sampler", "backend", "protocol")) -> str:
@@ -280,13 +291,21 @@ def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Pat
         stages = [s for s in REPORT_STAGES if f"t_{s}_ms" in g and g[f"t_{s}_ms"].notna().any()]
         if stages:
             lines += ["", "### Time profile (median ms per pair)", ""]
+            # Which clique search ran (auto picks per pair) and how many pairs hit a cap: the times
+            # depend on both.
+            with_search = "searches" in g and bool((g["searches"] != "").any())
             header = row_keys + [STAGE_LABELS[s] for s in stages]
+            if with_search:
+                header += ["search (pairs)", "capped"]
             rows = []
             for _, r in g.iterrows():
                 cells = [f"{r[k]:g}" if k == "ratio" else _fmt(r[k]) for k in row_keys]
                 cells += [_fmt_ms(r[f"t_{s}_ms"]) for s in stages]
+                if with_search:
+                    cells += [r["searches"] or "-", _fmt(r["capped"])]
                 rows.append(cells)
-            lines.append(markdown_table(header, rows, ["l"] * len(row_keys) + ["r"] * len(stages)))
+            align = ["l"] * len(row_keys) + ["r"] * len(stages) + (["l", "r"] if with_search else [])
+            lines.append(markdown_table(header, rows, align))
     for title, images in (("Plots", plots), ("Pairs (from the rerun recordings)", snapshots)):
         if images:
             lines += ["", f"## {title}", ""]

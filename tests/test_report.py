@@ -197,3 +197,31 @@ def test_time_profile_panels_keep_their_own_scale_and_ratio_axes_show_only_data(
     assert tops[0] < 50 and tops[-1] > 300  # each panel on its own scale
     ticks = {round(t, 6) for t in sampling.axes[0].get_xticks()}
     assert ticks == {0.5, 0.2}
+
+
+def test_report_says_which_search_ran_and_how_many_pairs_were_capped(tmp_path):
+    cap = "max_nodes=1000000"
+    rows = [
+        {**_row(0, "highpass", 0.2, 0, True, 1, 1, 5, 10), "search": "auto:bnb", "cap_hit": cap},
+        {**_row(1, "highpass", 0.2, 0, True, 1, 1, 5, 10), "search": "auto:enumerate", "cap_hit": ""},
+        {**_row(2, "highpass", 0.2, 0, True, 1, 1, 5, 10), "search": "auto:bnb", "cap_hit": None},
+        {**_row(0, "highpass", 1.0, 0, False, None, None, None, None, error="RegistrationFailed: x"),
+         "search": None, "cap_hit": None},
+    ]  # fmt: skip
+    agg = aggregate(pd.DataFrame(rows))
+    assert agg["searches"].tolist() == ["", "auto:bnb 2, auto:enumerate 1"]  # ratio 1.0 first
+    assert agg["capped"].tolist() == [0, 1]
+    root = tmp_path / "run"
+    log = ResultsLog(root)
+    for r in rows:
+        log.append(r)
+    log.write_tables()
+    res = make_report(root, tmp_path / "out", plots=False)
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "| ratio | GC | total | search (pairs) | capped |" in md, md
+    assert "| 0.2 | 5.00 | 10.0 | auto:bnb 2, auto:enumerate 1 | 1 |" in md, md
+    assert "| 1 | – | – | - | 0 |" in md, md
+    assert len(res["table"]) == 4
+    # without a search column the time table has no such columns
+    plain = aggregate(pd.DataFrame(RUN_A))
+    assert plain["searches"].tolist() == [""] and plain["capped"].tolist() == [0]
