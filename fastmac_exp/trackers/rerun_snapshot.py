@@ -150,7 +150,7 @@ def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
         if sub not in geo.lines:
             continue
         strips, classes = geo.lines[sub]
-        for style, width, alpha in ((OUTLIER, 0.25, 0.5), (INLIER, 0.6, 0.9), (CLIQUE, 2.0, 1.0)):
+        for style, width, alpha in ((OUTLIER, 0.4, 0.7), (INLIER, 0.6, 0.9), (CLIQUE, 2.0, 1.0)):
             sel = strips[classes == style.id]
             if len(sel):
                 segs = np.stack([_to_z_up(sel[:, 0], up), _to_z_up(sel[:, 1], up)], axis=1)

@@ -74,7 +74,7 @@ class Style:
 
 UNLABELLED = Style(0, "correspondence (no GT label)", (150, 150, 150), "grey")
 INLIER = Style(1, "GT inlier", (40, 210, 60), "green")
-OUTLIER = Style(2, "GT outlier", (110, 45, 45), "dark red, thin")
+OUTLIER = Style(2, "GT outlier", (235, 70, 70), "red, thin")  # bright enough on dark and white
 CLIQUE = Style(3, "winning clique", (255, 0, 230), "magenta, thick")
 SOURCE = Style(4, "source cloud", (250, 190, 20), "yellow")
 TARGET = Style(5, "target cloud", (40, 140, 255), "blue")
