@@ -302,7 +302,7 @@ def render_markdown(agg: pd.DataFrame, source: str, n_runs: int, plots: list[Pat
                 cells = [f"{r[k]:g}" if k == "ratio" else _fmt(r[k]) for k in row_keys]
                 cells += [_fmt_ms(r[f"t_{s}_ms"]) for s in stages]
                 if with_search:
-                    cells += [r["searches"] or "-", _fmt(r["capped"])]
+                    cells += [r["searches"] or "–", _fmt(r["capped"])]
                 rows.append(cells)
             align = ["l"] * len(row_keys) + ["r"] * len(stages) + (["l", "r"] if with_search else [])
             lines.append(markdown_table(header, rows, align))

@@ -220,7 +220,7 @@ def test_report_says_which_search_ran_and_how_many_pairs_were_capped(tmp_path):
     md = (tmp_path / "out" / "report.md").read_text()
     assert "| ratio | GC | total | search (pairs) | capped |" in md, md
     assert "| 0.2 | 5.00 | 10.0 | auto:bnb 2, auto:enumerate 1 | 1 |" in md, md
-    assert "| 1 | – | – | - | 0 |" in md, md
+    assert "| 1 | – | – | – | 0 |" in md, md
     assert len(res["table"]) == 4
     # without a search column the time table has no such columns
     plain = aggregate(pd.DataFrame(RUN_A))
