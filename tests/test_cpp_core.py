@@ -629,3 +629,10 @@ def test_core_so_env_loads_a_pinned_copy(tmp_path):
     assert ok.returncode == 0 and ok.stdout.split() == ["True", str(copy)], ok.stderr
     bad = run(tmp_path / "nothing.so")
     assert bad.returncode != 0 and "FASTMAC_CORE_SO" in bad.stderr and "nothing.so" in bad.stderr
+
+
+def test_the_cores_default_budgets_are_the_configs():
+    """The C++ default of mac.enumerate_budget (used by direct callers of the binding) is params.py's."""
+    from fastmac_exp.params import DEFAULT_ENUMERATE_BUDGET
+
+    assert core.default_enumerate_budget == DEFAULT_ENUMERATE_BUDGET == MacParams().enumerate_budget

@@ -342,6 +342,7 @@ NB_MODULE(_mac_core, m) {
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },
           "Threads used when num_threads=0 (problems with fewer than serial_below rows run on one).");
     m.attr("serial_below") = fastmac::kSerialBelow;
+    m.attr("default_enumerate_budget") = fastmac::kEnumerateBudget;  // params.DEFAULT_ENUMERATE_BUDGET
 #ifdef FASTMAC_OPENMP
     m.attr("parallel_backend") = "openmp";
 #else
