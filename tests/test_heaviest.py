@@ -4,6 +4,7 @@ of every kind; its work budget is reproducible for any thread count; Ctrl-C stop
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -83,6 +84,10 @@ def test_branch_and_bound_selects_what_enumeration_selects(kind, n, seed, k, int
         got, out = selection(n, i, j, w, k, "bnb", threads)
         assert got == want, (kind, n, seed, k, integer_weights, threads)
         assert out["cap_hit"] == ""
+    for step3 in ("pernode", "shared"):  # the core picks one by density; both must hold on any graph
+        with pruning("on", "on", step3):
+            got, out = selection(n, i, j, w, k, "bnb")
+        assert got == want, (kind, n, seed, k, integer_weights, step3)
 
 
 def second_order_weights(a: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -110,6 +115,107 @@ def test_near_clique_of_hundred_nodes(missing):
     assert got == reference(n, i, j, w, 3)
     if missing == 0:
         assert got == [tuple(range(n))]
+
+
+SWITCHES = ("FASTMAC_DOMINANCE", "FASTMAC_MATCHING", "FASTMAC_STEP3")
+
+
+@contextlib.contextmanager
+def pruning(dominance: str, matching: str, step3: str | None = None):
+    """The near-clique switches of the branch and bound (read by the core at each call): dominance and
+    the matching colouring on or off, step 3 per node or shared (None: the core's choice by density)."""
+    old = {k: os.environ.get(k) for k in SWITCHES}
+    os.environ["FASTMAC_DOMINANCE"], os.environ["FASTMAC_MATCHING"] = dominance, matching
+    if step3:
+        os.environ["FASTMAC_STEP3"] = step3
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def sparse_conflicts(n: int, rng: np.random.Generator, kind: str) -> np.ndarray:
+    """Upper-triangle adjacency of a clique on n nodes minus a sparse conflict graph of the given kind:
+    the structure of the reduced outdoor graphs (a core adjacent to all, conflicts in small components)."""
+    a = np.triu(np.ones((n, n), dtype=bool), 1)
+    nodes = rng.permutation(n)
+    if kind == "pairs":  # isolated conflicting pairs: one end of each in every maximal clique
+        k = int(rng.integers(1, min(n // 2, 9) + 1))
+        conflicts = nodes[: 2 * k].reshape(k, 2)
+    elif kind == "paths":  # paths and stars of 3-5 nodes
+        conflicts, at = [], 0
+        while at + 3 <= n and len(conflicts) < 16 and rng.random() < 0.9:
+            size = int(rng.integers(3, 6))
+            part = nodes[at : at + size]
+            at += size
+            hub = rng.random() < 0.3
+            conflicts += [(part[0], x) for x in part[1:]] if hub else list(zip(part[:-1], part[1:]))
+        conflicts = np.array(conflicts, dtype=np.int64).reshape(-1, 2)
+    else:  # "random": a sparse random conflict graph, about one conflict a node at most
+        m = int(rng.integers(1, min(n // 2, 16) + 1))
+        conflicts = rng.integers(0, n, (m, 2))
+        conflicts = conflicts[conflicts[:, 0] != conflicts[:, 1]]
+    lo, hi = np.minimum(conflicts[:, 0], conflicts[:, 1]), np.maximum(conflicts[:, 0], conflicts[:, 1])
+    a[lo, hi] = False
+    return a
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    kind=st.sampled_from(["pairs", "paths", "random"]),
+    n=st.integers(8, 48),
+    seed=st.integers(0, 2**31 - 1),
+    k=st.sampled_from([3, 4]),
+    integer_weights=st.booleans(),
+)
+def test_near_clique_pruning_keeps_the_selection_exact(kind, n, seed, k, integer_weights):
+    """Near-cliques with sparse conflicts are where the branch and bound drops dominated candidates, colours
+    by a matching of the conflicts and runs step 3 per node (heaviest.cpp): with any of them on or off
+    (FASTMAC_DOMINANCE, FASTMAC_MATCHING, FASTMAC_STEP3), the selection is the enumeration's, ties included."""
+    rng = np.random.default_rng(seed)
+    a = sparse_conflicts(n, rng, kind)
+    i, j = np.nonzero(a)
+    w = rng.integers(1, 4, len(i)).astype(float) if integer_weights else second_order_weights(a, rng)
+    keep = w > 0  # G is 0 on an edge without a common neighbour: no edge of the clique graph
+    i, j, w = i[keep], j[keep], w[keep]
+    want = reference(n, i, j, w, k)
+    for dominance in ("on", "off"):
+        for matching in ("on", "off"):
+            for step3 in ("pernode", "shared"):
+                with pruning(dominance, matching, step3):
+                    got, out = selection(n, i, j, w, k, "bnb", 1 + (dominance == matching))
+                assert got == want, (kind, n, seed, k, integer_weights, dominance, matching, step3)
+                assert out["cap_hit"] == ""
+
+
+def test_near_clique_pruning_cuts_the_search():
+    """A near-clique of 80 nodes whose conflicts are 8 paths of 6 nodes: a greedy colouring pairs them
+    badly (each path split into two pairs and two single classes), a matching pairs them perfectly; and many
+    candidates are dominated. Each cuts the search nodes, and the selection stays the same."""
+    rng = np.random.default_rng(7)
+    n = 80
+    a = np.triu(np.ones((n, n), dtype=bool), 1)
+    for path in rng.permutation(n)[:48].reshape(8, 6):
+        for x, y in zip(path[:-1], path[1:]):
+            a[min(x, y), max(x, y)] = False
+    i, j = np.nonzero(a)
+    w = second_order_weights(a, rng)
+    nodes_used = {}
+    for dominance, matching in (("off", "off"), ("on", "off"), ("off", "on"), ("on", "on")):
+        with pruning(dominance, matching):
+            got, out = selection(n, i, j, w, 3, "bnb", max_nodes=5_000_000)
+        nodes_used[dominance, matching] = out["search_nodes"]
+        if (dominance, matching) == ("off", "off"):
+            want = got
+        assert got == want and out["cap_hit"] == ""
+    base = nodes_used["off", "off"]
+    assert nodes_used["on", "off"] < base * 0.75, nodes_used
+    assert nodes_used["off", "on"] * 20 < base, nodes_used
+    assert nodes_used["on", "on"] <= nodes_used["off", "on"], nodes_used
 
 
 def test_node_budget_is_reproducible_across_threads():

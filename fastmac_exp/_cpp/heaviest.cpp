@@ -40,6 +40,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <memory>
+#include <string>
 #include <thread>
 
 #include "interrupt.hpp"
@@ -52,6 +53,21 @@ namespace fastmac {
 namespace {
 
 constexpr double kSlack = 1e-9;  // bounds sum in another order than the canonical weight: cut only clearly
+// A dominated candidate must lose by this much relative to the clique's weight (summation order, ties).
+constexpr double kDominanceMargin = 1e-9;
+// A branch is a near-clique while its candidates have at most this many conflicts (non-adjacent ordered
+// pairs) per candidate; there dominance and the matching colouring pay, elsewhere their checks would cost
+// more than they save.
+constexpr int64_t kNearCliqueConflicts = 16;
+
+// Step 3 runs one search per node left to do where the nodes that can be in a clique are at least this
+// dense (near-cliques: 0.95-0.999 on the reduced outdoor graphs; sparse indoor graphs ~0.01).
+constexpr double kPerNodeDensity = 0.9;
+
+bool switch_on(const char *name) {
+    const char *env = std::getenv(name);
+    return !(env && std::string(env) == "off");
+}
 
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
@@ -180,6 +196,11 @@ class Searcher {
     double *target_ = nullptr;             // one target for every node (search), or
     std::vector<double> *targets_ = nullptr;  // a target per node (search_all)
     bool aborted_ = false;
+    const bool dominance_ = switch_on("FASTMAC_DOMINANCE");
+    const bool matching_ = switch_on("FASTMAC_MATCHING");
+    std::vector<int32_t> mv_, hp_, hc_, mate_, vis_, order2_, col2_;
+    std::vector<double> val2_;
+    int stamp_ = 0;
 
     void setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
         L_ = cand;
@@ -314,6 +335,179 @@ class Searcher {
         return false;
     }
 
+    // Dominance (near-cliques): candidates x and y that are not adjacent, where every candidate adjacent
+    // to y is adjacent to x, and x's attachment to R plus the worst case over y's candidate neighbours z,
+    // a_x - a_y + sum_z min(0, G_xz - G_yz), is clearly positive. Then swapping y for x in any clique of
+    // this branch that holds y gives a clique that is strictly heavier for every other member, so a
+    // clique through y can only be needed by y itself; when y needs nothing (its target is met), y moves
+    // from P to X (leaves it extends are not maximal; their swap with x is searched). The condition is
+    // inherited by the branch's descendants (P shrinks; members of P that join R turn their worst case
+    // into the exact term). Chains are sound: a dominator must still be in P, and each swap is strictly
+    // heavier. Returns the number of candidates dropped.
+    int drop_dominated(Level &lv) {
+        uint64_t *P = lv.P.data(), *X = lv.X.data();
+        int dropped = 0;
+        for (int w = 0; w < W_; ++w)
+            for (uint64_t bits = P[w]; bits; bits &= bits - 1) {
+                const int y = w * 64 + __builtin_ctzll(bits);
+                if (targets_ && !std::isinf((*targets_)[L_[y]])) continue;  // y still needs its best clique
+                const uint64_t *ry = adj_.data() + (size_t)y * W_;
+                const double *gy = gm_.data() + (size_t)y * np_;
+                bool gone = false;
+                for (int k = 0; k < W_ && !gone; ++k)
+                    for (uint64_t xb = P[k] & ~ry[k]; xb && !gone; xb &= xb - 1) {
+                        const int x = k * 64 + __builtin_ctzll(xb);
+                        if (x == y) continue;
+                        const uint64_t *rx = adj_.data() + (size_t)x * W_;
+                        bool subset = true;
+                        for (int q = 0; q < W_ && subset; ++q) subset = (P[q] & ry[q] & ~rx[q]) == 0;
+                        if (!subset) continue;
+                        const double *gx = gm_.data() + (size_t)x * np_;
+                        double gain = lv.a[x] - lv.a[y], scale = lv.a[x];
+                        for (int q = 0; q < W_; ++q)
+                            for (uint64_t zb = P[q] & ry[q]; zb; zb &= zb - 1) {
+                                const int z = q * 64 + __builtin_ctzll(zb);
+                                gain += std::min(0.0, gx[z] - gy[z]);
+                                scale += gx[z];
+                            }
+                        if (gain > kDominanceMargin * scale) {
+                            P[w] &= ~(uint64_t(1) << (y & 63));
+                            X[w] |= uint64_t(1) << (y & 63);
+                            ++dropped;
+                            gone = true;
+                        }
+                    }
+            }
+        return dropped;
+    }
+
+    // The bound of a colouring (lv.order, lv.col: classes in order, colours 1, 2, ...): over the classes
+    // in order, each member contributes attach(u) plus, for every earlier class, at most its heaviest edge
+    // into that class; a clique takes one member per class. Fills lv.val (each member's contribution).
+    double colour_bound(Level &lv, double wR) {
+        const int cnt = (int)lv.order.size();
+        lv.val.resize(cnt);
+        double ub = wR, curA = 0.0;
+        int cur = 0, class_start = 0;
+        for (int i = 0; i < cnt; ++i) {
+            const int u = lv.order[i];
+            if (lv.col[i] != cur) {
+                ub += curA;
+                curA = 0.0;
+                cur = lv.col[i];
+                class_start = i;
+            }
+            const double *gu = gm_.data() + (size_t)u * np_;
+            double beta = 0.0, best = 0.0;
+            int c = 1;
+            for (int j = 0; j < class_start; ++j) {
+                if (lv.col[j] != c) {
+                    beta += best;
+                    best = 0.0;
+                    c = lv.col[j];
+                }
+                best = std::max(best, gu[lv.order[j]]);
+            }
+            beta += best;
+            lv.val[i] = lv.a[u] + beta;
+            curA = std::max(curA, lv.val[i]);
+        }
+        return ub + curA;
+    }
+
+    // Colour classes of one or two candidates: the pairs of a matching of the conflict graph on P (two
+    // non-adjacent candidates are an independent set), grown greedily (fewest conflicts first) and then
+    // by augmenting paths (Kuhn's search with every vertex of the path marked, so that a path found in a
+    // non-bipartite conflict graph is still a simple alternating path; it may miss some, which only
+    // costs tightness). Classes in candidate order. Returns their number.
+    int matching_classes(const uint64_t *P, Level &lv) {
+        mv_.clear();
+        for (int w = 0; w < W_; ++w)
+            for (uint64_t bits = P[w]; bits; bits &= bits - 1) mv_.push_back(w * 64 + __builtin_ctzll(bits));
+        if ((int)mate_.size() < np_) {
+            mate_.assign(np_, -1);
+            vis_.assign(np_, 0);
+        }
+        hp_.assign(np_ + 1, 0);  // conflict lists, indexed by local vertex (only P's are filled)
+        hc_.clear();
+        std::vector<int32_t> &start = hp_;
+        for (int u : mv_) {
+            const uint64_t *ru = adj_.data() + (size_t)u * W_;
+            start[u] = (int32_t)hc_.size();
+            for (int k = 0; k < W_; ++k)
+                for (uint64_t b = P[k] & ~ru[k]; b; b &= b - 1) {
+                    const int x = k * 64 + __builtin_ctzll(b);
+                    if (x != u) hc_.push_back(x);
+                }
+            mate_[u] = -1;
+            hc_.push_back(-1);  // end of u's list
+        }
+        auto degree = [&](int u) {
+            int d = 0;
+            for (int32_t q = start[u]; hc_[q] >= 0; ++q) ++d;
+            return d;
+        };
+        std::vector<std::pair<int, int>> deg;
+        deg.reserve(mv_.size());
+        for (int u : mv_) deg.emplace_back(degree(u), u);
+        std::sort(deg.begin(), deg.end());
+        for (auto [d, u] : deg) {
+            if (d == 0 || mate_[u] >= 0) continue;
+            int best = -1, best_d = 0;
+            for (int32_t q = start[u]; hc_[q] >= 0; ++q) {
+                const int x = hc_[q];
+                if (mate_[x] >= 0) continue;
+                const int dx = degree(x);
+                if (best < 0 || dx < best_d) best = x, best_d = dx;
+            }
+            if (best >= 0) mate_[u] = best, mate_[best] = u;
+        }
+        for (auto [d, s] : deg) {
+            if (d == 0 || mate_[s] >= 0) continue;
+            if (++stamp_ == 0) {
+                std::fill(vis_.begin(), vis_.end(), 0);
+                stamp_ = 1;
+            }
+            vis_[s] = stamp_;
+            augment(s);
+        }
+        lv.order.clear();
+        lv.col.clear();
+        int colour = 0;
+        for (int u : mv_) {
+            if (mate_[u] >= 0 && mate_[u] < u) continue;  // listed with its mate
+            lv.order.push_back(u);
+            lv.col.push_back(++colour);
+            if (mate_[u] >= 0) {
+                lv.order.push_back(mate_[u]);
+                lv.col.push_back(colour);
+            }
+        }
+        return colour;
+    }
+
+    bool augment(int u) {
+        for (int32_t q = hp_[u]; hc_[q] >= 0; ++q) {
+            const int x = hc_[q];
+            if (vis_[x] == stamp_) continue;
+            vis_[x] = stamp_;
+            if (mate_[x] < 0) {
+                mate_[x] = u;
+                mate_[u] = x;
+                return true;
+            }
+            const int w = mate_[x];
+            if (vis_[w] == stamp_) continue;
+            vis_[w] = stamp_;
+            if (augment(w)) {
+                mate_[x] = u;
+                mate_[u] = x;
+                return true;
+            }
+        }
+        return false;
+    }
+
     void expand(int depth, double wR) {
         ++nodes;
         if (should_stop()) return;
@@ -378,40 +572,57 @@ class Searcher {
             }
         }
         if ((int)R_.size() + 1 + colour < min_size_) return;
-        // The bound: over the colour classes in order, each member contributes attach(u) plus, for every
-        // earlier class, at most its heaviest edge into that class; a clique takes one member per class.
-        const int cnt = (int)lv.order.size();
-        lv.val.resize(cnt);
-        double ub = wR;
-        {
-            double curA = 0.0;
-            int cur = 0, class_start = 0;
-            for (int i = 0; i < cnt; ++i) {
-                const int u = lv.order[i];
-                if (lv.col[i] != cur) {
-                    ub += curA;
-                    curA = 0.0;
-                    cur = lv.col[i];
-                    class_start = i;
-                }
-                const double *gu = gm_.data() + (size_t)u * np_;
-                double beta = 0.0, best = 0.0;
-                int c = 1;
-                for (int j = 0; j < class_start; ++j) {
-                    if (lv.col[j] != c) {
-                        beta += best;
-                        best = 0.0;
-                        c = lv.col[j];
-                    }
-                    best = std::max(best, gu[lv.order[j]]);
-                }
-                beta += best;
-                lv.val[i] = lv.a[u] + beta;
-                curA = std::max(curA, lv.val[i]);
-            }
-            ub += curA;
-        }
+        double ub = colour_bound(lv, wR);
         if (!wanted(lv, wR, ub)) return;
+        // Near-cliques (few conflicts, i.e. non-adjacent candidate pairs), only where the greedy bound did
+        // not cut: (1) the greedy colouring pairs conflicting candidates greedily and each class it leaves
+        // over adds a whole candidate to the bound; classes from a larger matching of the conflicts often
+        // bound much tighter (the smaller bound is kept); (2) dominated candidates leave P.
+        if ((matching_ || dominance_) && (int)lv.order.size() > 2) {
+            const int cnt0 = (int)lv.order.size();
+            int64_t conflicts = 0;
+            for (int w = 0; w < W_; ++w)
+                for (uint64_t bits = P[w]; bits; bits &= bits - 1) {
+                    const uint64_t *ru = adj_.data() + (size_t)(w * 64 + __builtin_ctzll(bits)) * W_;
+                    int c = 0;
+                    for (int k = 0; k < W_; ++k) c += popcount64(P[k] & ru[k]);
+                    conflicts += cnt0 - 1 - c;
+                }
+            if (conflicts <= kNearCliqueConflicts * (int64_t)cnt0) {
+                if (matching_ && colour > (cnt0 + 1) / 2) {
+                    order2_.swap(lv.order);
+                    col2_.swap(lv.col);
+                    val2_.swap(lv.val);
+                    const int classes = matching_classes(P, lv);
+                    const double ub2 = classes < colour ? colour_bound(lv, wR) : INFINITY;
+                    if (ub2 < ub) {
+                        ub = ub2;
+                        colour = classes;
+                    } else {
+                        order2_.swap(lv.order);
+                        col2_.swap(lv.col);
+                        val2_.swap(lv.val);
+                    }
+                    if ((int)R_.size() + 1 + colour < min_size_ || !wanted(lv, wR, ub)) return;
+                }
+                if (dominance_ && drop_dominated(lv) > 0) {
+                    // the classes without the dropped candidates (still a colouring of the new P)
+                    size_t out = 0;
+                    for (size_t i = 0; i < lv.order.size(); ++i) {
+                        const int u = lv.order[i];
+                        if (!(P[u >> 6] >> (u & 63) & 1)) continue;
+                        lv.order[out] = u;
+                        lv.col[out] = lv.col[i];
+                        ++out;
+                    }
+                    lv.order.resize(out);
+                    lv.col.resize(out);
+                    ub = colour_bound(lv, wR);
+                    if (!wanted(lv, wR, ub)) return;
+                }
+            }
+        }
+        const int cnt = (int)lv.order.size();
 
         // Pivot (Tomita): the vertex of P u X with the most neighbours in P. A maximal clique of this
         // branch contains a non-neighbour of the pivot, so only those are branched on.
@@ -516,11 +727,42 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     };
     auto degree = [&](int64_t v) { return g.ptr[v + 1] - g.ptr[v]; };
 
+    // Near-cliques: the nodes that can be in a clique are nearly all linked (0.95-0.999 on the reduced
+    // outdoor graphs, ~0.01 on sparse indoor ones). There step 1 skips covered nodes and step 3 runs per
+    // node (see the top of this file).
+    int64_t active = 0, active_edges = 0;
+    for (int64_t v = 0; v < n; ++v)
+        if (degree(v) + 1 >= min_size) {
+            ++active;
+            active_edges += degree(v);
+        }
+    const bool near_clique =
+        (double)active_edges >= kPerNodeDensity * (double)active * (double)(active - 1) && active > 1;
+    const char *step3 = std::getenv("FASTMAC_STEP3");
+    const bool per_node = step3 && std::string(step3) == "shared"    ? false
+                          : step3 && std::string(step3) == "pernode" ? true
+                                                                     : near_clique;
+
     // 1. a greedy clique through every node; cliques from neighbouring seeds often coincide, so each
-    // distinct one is weighed and offered once (in node order: the count does not depend on threads)
-    run_parallel(n, 64, nthreads, searchers, ctl, interrupt, [&](int64_t v, Searcher &s) {
-        if (degree(v) + 1 >= min_size) s.greedy((int32_t)v);
-    });
+    // distinct one is weighed and offered once (in node order: the count does not depend on threads).
+    // On a near-clique the greedy cliques are huge and nearly all the same: serially, a node that an
+    // earlier one covers takes its lower bound from it.
+    if (near_clique) {
+        std::vector<char> covered(n, 0);
+        Searcher &s0 = *searchers[0];
+        for (int64_t v = 0; v < n && !ctl.stop.load(); ++v) {
+            if (degree(v) + 1 < min_size || covered[v]) continue;
+            const size_t before = s0.greedy_.size();
+            s0.greedy((int32_t)v);
+            if (s0.greedy_.size() > before)
+                for (int32_t x : s0.greedy_.back()) covered[x] = 1;
+            if (interrupt.check()) ctl.halt(3);
+        }
+    } else {
+        run_parallel(n, 64, nthreads, searchers, ctl, interrupt, [&](int64_t v, Searcher &s) {
+            if (degree(v) + 1 >= min_size) s.greedy((int32_t)v);
+        });
+    }
     {
         std::vector<const std::vector<int32_t> *> all;
         for (auto &s : searchers)
@@ -540,6 +782,8 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     for (int64_t i = 0; i < n; ++i) rank[order[i]] = (int32_t)i;
     double best = 0.0;
     for (int64_t v = 0; v < n; ++v) best = std::max(best, lb[v]);
+    double gmax = 0.0;
+    for (double x : vals) gmax = std::max(gmax, x);
     {
         std::vector<int32_t> cand, excl;
         Searcher &s = *searchers[0];
@@ -549,6 +793,9 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
             excl.clear();
             for (int64_t p = g.ptr[v]; p < g.ptr[v + 1]; ++p)
                 (rank[g.col[p]] > i ? cand : excl).push_back(g.col[p]);
+            // no clique of root + cand can reach best: skip the root's setup (costly on near-cliques)
+            const double most = 0.5 * (double)cand.size() * (double)(cand.size() + 1) * gmax;
+            if (most < best * (1.0 - kSlack)) continue;
             std::sort(cand.begin(), cand.end(), [&](int32_t a, int32_t b) { return rank[a] < rank[b]; });
             s.search(v, cand, excl, best);
         }
@@ -567,7 +814,20 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
             targets[v] = lb[v];
             ++n_todo;
         }
-    if (n_todo > 0) {
+    if (n_todo > 0 && per_node) {
+        std::vector<int32_t> cand;
+        const std::vector<int32_t> none;
+        Searcher &s = *searchers[0];
+        for (int64_t v = 0; v < n && !ctl.stop.load(); ++v) {
+            if (!std::isfinite(targets[v])) continue;
+            collect();
+            if (lb[v] >= best * (1.0 - kSlack)) continue;
+            cand.assign(g.col.begin() + g.ptr[v], g.col.begin() + g.ptr[v + 1]);
+            std::sort(cand.begin(), cand.end(), [&](int32_t a, int32_t b) { return rank[a] < rank[b]; });
+            double t = lb[v];
+            s.search((int32_t)v, cand, none, t);
+        }
+    } else if (n_todo > 0) {
         std::vector<int32_t> cand, excl;
         Searcher &s = *searchers[0];
         for (int64_t i = n - 1; i >= 0 && !ctl.stop.load(); --i) {
