@@ -173,9 +173,10 @@ def sparse_conflicts(n: int, rng: np.random.Generator, kind: str) -> np.ndarray:
     integer_weights=st.booleans(),
 )
 def test_near_clique_pruning_keeps_the_selection_exact(kind, n, seed, k, integer_weights):
-    """Near-cliques with sparse conflicts are where the branch and bound drops dominated candidates, colours
-    by a matching of the conflicts and runs step 3 per node (heaviest.cpp): with any of them on or off
-    (FASTMAC_DOMINANCE, FASTMAC_MATCHING, FASTMAC_STEP3), the selection is the enumeration's, ties included."""
+    """Near-cliques with sparse conflicts are where the branch and bound drops dominated candidates,
+    colours by a matching of the conflicts and runs step 3 per node (heaviest.cpp): with any of them on or
+    off (FASTMAC_DOMINANCE, FASTMAC_MATCHING, FASTMAC_STEP3), the selection is the enumeration's, ties
+    included."""
     rng = np.random.default_rng(seed)
     a = sparse_conflicts(n, rng, kind)
     i, j = np.nonzero(a)
