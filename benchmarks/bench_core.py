@@ -332,8 +332,9 @@ def print_table(rows: list[Row], header: bool = True) -> None:
 ENUM_CAP_S = 10.0
 
 
-def outdoor_pairs(quick: bool) -> list[tuple[str, Correspondences, np.ndarray]]:
-    """(name, 5,000 FPFH correspondences with labels, GT) of the outdoor pairs: real ones, then synthetic."""
+def outdoor_pairs(quick: bool, keep=None) -> list[tuple[str, Correspondences, np.ndarray]]:
+    """(name, 5,000 FPFH correspondences with labels, GT) of the outdoor pairs: real ones, then synthetic
+    (keep: a test on 'real:<pair>' / 'syn:<pair>', the pairs described; default all)."""
     from fastmac_exp.datasets.synthetic import SyntheticDataset
     from fastmac_exp.datasets.user_pairs import SharedRealPairs
     from fastmac_exp.descriptors.fpfh import FPFHDescriptor
@@ -348,6 +349,8 @@ def outdoor_pairs(quick: bool) -> list[tuple[str, Correspondences, np.ndarray]]:
     sets.append(("syn", SyntheticDataset(family="kitti", num_pairs=3 if quick else 8)))
     for tag, ds in sets:
         for i, name in enumerate(ds.names()):
+            if keep is not None and not keep(f"{tag}:{name}"):
+                continue
             pair = ds.load(i)
             corr = describe(pair, np.random.default_rng(0))
             pair.label(corr)

@@ -72,31 +72,17 @@ def parse_case(case: str) -> tuple[str, str, float]:
 
 
 def correspondences(source: str, name: str):
-    """The correspondences of a case (None when its data is absent)."""
+    """The correspondences of a case (None when its data is absent): bench_core's."""
     if source == "big":
         inl = float(name.rstrip("%")) / 100.0
         corr, _ = bench_core.synthetic(50_000, inlier_ratio=inl, noise=0.1, seed=1, room=(60.0, 60.0, 4.0))
         return corr
-    from fastmac_exp.descriptors.fpfh import FPFHDescriptor
-
-    if source == "syn":
-        from fastmac_exp.datasets.synthetic import SyntheticDataset
-
-        ds = SyntheticDataset(family="kitti", num_pairs=8)
-    else:
-        if not (bench_core.DATA / "pairs.json").exists():
-            return None
-        from fastmac_exp.datasets.user_pairs import SharedRealPairs
-
-        ds = SharedRealPairs(root=str(bench_core.DATA), category="outdoor")
-    names = ds.names()
-    hits = [i for i, n in enumerate(names) if n.startswith(name)]
-    if not hits:
-        raise SystemExit(f"bench_search: no pair named {name}* in {source} (have: {', '.join(names)})")
-    pair = ds.load(hits[0])
-    corr = FPFHDescriptor(max_correspondences=5000)(pair, np.random.default_rng(0))
-    pair.label(corr)
-    return corr
+    if source == "real" and not (bench_core.DATA / "pairs.json").exists():
+        return None
+    found = bench_core.outdoor_pairs(quick=False, keep=lambda key: key.startswith(f"{source}:{name}"))
+    if not found:
+        raise SystemExit(f"bench_search: no outdoor pair named {source}:{name}*")
+    return found[0][1]
 
 
 def build(case: str) -> dict | None:

@@ -82,11 +82,6 @@ constexpr int64_t kNearCliqueConflicts = 16;
 // dense (near-cliques: 0.95-0.999 on the reduced outdoor graphs; sparse indoor graphs ~0.01).
 constexpr double kPerNodeDensity = 0.9;
 
-bool switch_on(const char *name) {
-    const char *env = std::getenv(name);
-    return !(env && std::string(env) == "off");
-}
-
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
 struct Control {
@@ -214,9 +209,10 @@ class Searcher {
     double *target_ = nullptr;             // one target for every node (search), or
     std::vector<double> *targets_ = nullptr;  // a target per node (search_all)
     bool aborted_ = false;
-    const bool dominance_ = switch_on("FASTMAC_DOMINANCE");
-    const bool matching_ = switch_on("FASTMAC_MATCHING");
-    std::vector<int32_t> mv_, hp_, hc_, mate_, vis_, order2_, col2_;
+    const bool dominance_ = !env_is("FASTMAC_DOMINANCE", "off");
+    const bool matching_ = !env_is("FASTMAC_MATCHING", "off");
+    std::vector<int32_t> mv_, hp_, hc_, hdeg_, mate_, vis_, order2_, col2_;
+    std::vector<std::pair<int, int>> by_degree_;
     std::vector<double> val2_;
     int stamp_ = 0;
 
@@ -446,41 +442,34 @@ class Searcher {
             mate_.assign(np_, -1);
             vis_.assign(np_, 0);
         }
-        hp_.assign(np_ + 1, 0);  // conflict lists, indexed by local vertex (only P's are filled)
+        hp_.assign(np_, 0);  // conflict lists (hc_ from hp_[u], ended by -1), by local vertex
+        hdeg_.assign(np_, 0);
         hc_.clear();
-        std::vector<int32_t> &start = hp_;
         for (int u : mv_) {
             const uint64_t *ru = adj_.data() + (size_t)u * W_;
-            start[u] = (int32_t)hc_.size();
+            hp_[u] = (int32_t)hc_.size();
             for (int k = 0; k < W_; ++k)
                 for (uint64_t b = P[k] & ~ru[k]; b; b &= b - 1) {
                     const int x = k * 64 + __builtin_ctzll(b);
                     if (x != u) hc_.push_back(x);
                 }
+            hdeg_[u] = (int32_t)hc_.size() - hp_[u];
             mate_[u] = -1;
-            hc_.push_back(-1);  // end of u's list
+            hc_.push_back(-1);
         }
-        auto degree = [&](int u) {
-            int d = 0;
-            for (int32_t q = start[u]; hc_[q] >= 0; ++q) ++d;
-            return d;
-        };
-        std::vector<std::pair<int, int>> deg;
-        deg.reserve(mv_.size());
-        for (int u : mv_) deg.emplace_back(degree(u), u);
-        std::sort(deg.begin(), deg.end());
-        for (auto [d, u] : deg) {
+        by_degree_.clear();
+        for (int u : mv_) by_degree_.emplace_back(hdeg_[u], u);
+        std::sort(by_degree_.begin(), by_degree_.end());
+        for (auto [d, u] : by_degree_) {
             if (d == 0 || mate_[u] >= 0) continue;
-            int best = -1, best_d = 0;
-            for (int32_t q = start[u]; hc_[q] >= 0; ++q) {
+            int best = -1;
+            for (int32_t q = hp_[u]; hc_[q] >= 0; ++q) {
                 const int x = hc_[q];
-                if (mate_[x] >= 0) continue;
-                const int dx = degree(x);
-                if (best < 0 || dx < best_d) best = x, best_d = dx;
+                if (mate_[x] < 0 && (best < 0 || hdeg_[x] < hdeg_[best])) best = x;
             }
             if (best >= 0) mate_[u] = best, mate_[best] = u;
         }
-        for (auto [d, s] : deg) {
+        for (auto [d, s] : by_degree_) {
             if (d == 0 || mate_[s] >= 0) continue;
             if (++stamp_ == 0) {
                 std::fill(vis_.begin(), vis_.end(), 0);
@@ -756,10 +745,8 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         }
     const bool near_clique =
         (double)active_edges >= kPerNodeDensity * (double)active * (double)(active - 1) && active > 1;
-    const char *step3 = std::getenv("FASTMAC_STEP3");
-    const bool per_node = step3 && std::string(step3) == "shared"    ? false
-                          : step3 && std::string(step3) == "pernode" ? true
-                                                                     : near_clique;
+    const bool per_node =
+        env_is("FASTMAC_STEP3", "pernode") || (near_clique && !env_is("FASTMAC_STEP3", "shared"));
 
     // 1. a greedy clique through every node; cliques from neighbouring seeds often coincide, so each
     // distinct one is weighed and offered once (in node order: the count does not depend on threads).

@@ -5,6 +5,8 @@
 // are computed on W's support from sorted neighbour lists (CSR).
 #pragma once
 
+#include <cstdlib>
+
 #include <cstdint>
 #include <stdexcept>
 #include <string>
@@ -35,6 +37,13 @@ void check_params(const GraphParams &gp);       // throws std::invalid_argument
 constexpr int64_t kSerialBelow = 1500;
 int resolve_threads(int num_threads, int64_t n = -1);
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
+
+// The core's switches for tests and comparisons (FASTMAC_DENSE_CORE, FASTMAC_DOMINANCE, ...): the
+// environment variable `name` equals `value`.
+inline bool env_is(const char *name, const char *value) {
+    const char *env = std::getenv(name);
+    return env && std::string(env) == value;
+}
 
 // For every row of a (na x dim, row-major) the index of the nearest row of b (nb x dim) in Euclidean
 // distance, by brute force in float64 (nearest.cpp); ties go to the lowest index.

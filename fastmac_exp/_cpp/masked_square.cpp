@@ -97,10 +97,6 @@ tiles::Tile<T> pick_tile() {
     else return k.f;
 }
 
-bool dense_core_enabled() {
-    const char *env = std::getenv("FASTMAC_DENSE_CORE");
-    return !(env && std::string(env) == "off");
-}
 
 struct Core {
     int64_t m = 0;
@@ -112,7 +108,7 @@ struct Core {
 Core find_core(const Csr &V) {
     Core core;
     const int64_t n = V.n;
-    if (n < 256 || !dense_core_enabled()) return core;
+    if (n < 256 || env_is("FASTMAC_DENSE_CORE", "off")) return core;
     std::vector<int32_t> order(n);
     std::iota(order.begin(), order.end(), 0);
     auto deg = [&](int32_t i) { return V.ptr[i + 1] - V.ptr[i]; };
