@@ -2,6 +2,7 @@
 
     python benchmarks/bench_search.py [--cases syn:kitti_003@100 ...] [--quick] [--max-nodes 1000000]
                                       [--searches bnb auto] [--reps 3] [--threads 1] [--rebuild]
+                                      [--old OTHER_BUILD.so]
 
 bench_core.py times sampling + MAC end to end; most of that is graph building, and a change to the
 search drowns in its noise. This script builds the clique graphs once (FPFH correspondences, high-pass
@@ -27,7 +28,11 @@ Cases (name@ratio; ratio 100 = MAC on all 5,000 correspondences):
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -160,13 +165,25 @@ def time_search(graph: dict, search: str, max_nodes: int, reps: int, threads: in
             max_nodes=max_nodes, time_limit_s=0.0, enumerate_budget=budget, num_threads=threads,
         )  # fmt: skip
         times.append((time.perf_counter() - t0) * 1e3)
+    digest = hashlib.sha1(repr([tuple(int(v) for v in c) for c in out["cliques"]]).encode()).hexdigest()
     return {
         "ms": statistics.median(times),
         "nodes": int(out["search_nodes"]),
         "cap": str(out["cap_hit"]),
         "selected": len(out["cliques"]),
         "used": str(out["search_used"]),
+        "digest": digest,  # of the selected cliques in order: equal selections, equal digests
     }
+
+
+def time_with_core(core_so: str, case: str, search: str, args) -> dict:
+    """time_search in a child process that loads another build of the core (FASTMAC_CORE_SO)."""
+    cmd = [sys.executable, __file__, "--child", case, search, str(int(args.max_nodes)), str(args.reps)]
+    cmd.append(str(args.threads))
+    out = subprocess.run(cmd, env={**os.environ, "FASTMAC_CORE_SO": core_so}, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"bench_search: the core {core_so} failed on {case}:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,7 +195,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1, help="search threads (steps 2-3 are serial anyway)")
     ap.add_argument("--rebuild", action="store_true", help="rebuild the cached graphs")
+    ap.add_argument("--old", default=None, help="another build of the core (.so), timed beside this one")
+    ap.add_argument(
+        "--child", nargs=5, default=None, help=argparse.SUPPRESS
+    )  # case search max_nodes reps threads
     args = ap.parse_args(argv)
+    if args.child:
+        case, search, max_nodes, reps, threads = args.child
+        r = time_search(load(case, False), search, int(max_nodes), int(reps), int(threads))
+        print(json.dumps(r))
+        return 0
     if not cpp.available():
         print("bench_search: the C++ core is not built")
         return 1
@@ -195,10 +221,22 @@ def main(argv: list[str] | None = None) -> int:
         built = time.perf_counter() - t0
         cells = []
         for search in args.searches:
+            if args.old:  # the other build first, in its own process, then this one
+                o = time_with_core(args.old, case, search, args)
             r = time_search(graph, search, int(args.max_nodes), args.reps, args.threads)
             cap = f" cap {r['cap']}" if r["cap"] else ""
             ran = f" ({r['used']})" if search == "auto" else ""
-            cells.append(f"{search}{ran} {r['ms']:8.1f} ms {r['nodes']:>9,} nodes{cap}")
+            cell = f"{search}{ran} {r['ms']:8.1f} ms {r['nodes']:>9,} nodes{cap}"
+            if args.old:
+                ocap = " cap" if o["cap"] else ""
+                same = (
+                    "same"
+                    if o["digest"] == r["digest"]
+                    else ("differ (old capped)" if o["cap"] else "DIFFER")
+                )
+                ratio = o["ms"] / r["ms"]
+                cell += f" <- old {o['ms']:8.1f} ms {o['nodes']:>9,} nodes{ocap} ({ratio:.1f}x, {same})"
+            cells.append(cell)
         print(
             f"{case:28s} {s['nodes']:6d} {s['edges']:7d} {s['universal']:5d} {s['conflicts']:6d} "
             f"{s['components']:5d} {s['largest']:4d} | " + " | ".join(cells)
@@ -208,7 +246,9 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "nodes: nodes with an edge; univ: adjacent to all others; confl: missing edges among the rest;\n"
         "comp/big: components of those conflicts and the largest; ms: median of the select_cliques calls\n"
-        "(min clique size 4, KITTI); nodes: branch-and-bound search nodes; cap: the node budget was hit."
+        "(min clique size 4, KITTI); nodes: branch-and-bound search nodes; cap: the node budget was hit.\n"
+        "--old: the other build's figures after '<- old', its time over this one's, and whether both\n"
+        "selected the same cliques."
     )
     return 0
 
