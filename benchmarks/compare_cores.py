@@ -34,7 +34,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 # Run in the child: times one build on every saved pair with bench_core's own timers (the same calls as
-# its outdoor section: graph_signals, and sampling + MAC with the default search); one JSON line.
+# its outdoor section: graph_signals, and sampling + MAC with the branch and bound, mac.search=bnb); one
+# JSON line.
 CHILD = r"""
 import json, sys
 import numpy as np
