@@ -50,14 +50,26 @@ namespace {
 constexpr int64_t kL2Bytes = 384 * 1024;  // the packed B block kept in L2 (kc x nc)
 constexpr int64_t kSuper = 64;  // core rows one thread takes at a time in the pass over the nodes outside K
 
-// A zeroed array from calloc (no std::vector: its value-initialisation would write every byte twice). With
-// the module's malloc setting (memory.cpp) a large one reuses the pages of the previous call.
+// An array on malloc's memory, not value-initialised (std::vector would write every byte once more).
+// zeroed: from calloc; with the module's malloc setting (memory.cpp) a large one reuses the pages of the
+// previous call. huge: uninitialised, on transparent huge pages where the kernel gives them on request
+// (madvise mode): the triangle listing reads its arrays at random, and with 4 KiB pages nearly every such
+// read also missed the TLB.
 template <class T>
-class ZeroArray {
+class Array {
   public:
-    ZeroArray() = default;
-    explicit ZeroArray(size_t n) : p_(static_cast<T *>(std::calloc(std::max<size_t>(n, 1), sizeof(T)))) {
-        if (!p_) throw std::bad_alloc();
+    Array() = default;
+    static Array zeroed(size_t n) { return Array(static_cast<T *>(std::calloc(std::max<size_t>(n, 1), sizeof(T)))); }
+    static Array huge(size_t n) {
+        constexpr size_t kHuge = size_t(2) << 20;
+        const size_t bytes = std::max<size_t>(n, 1) * sizeof(T);
+        if (bytes < kHuge) return Array(static_cast<T *>(std::malloc(bytes)));
+        const size_t rounded = (bytes + kHuge - 1) / kHuge * kHuge;
+        Array a(static_cast<T *>(std::aligned_alloc(kHuge, rounded)));
+#ifdef MADV_HUGEPAGE
+        madvise(a.data(), rounded, MADV_HUGEPAGE);
+#endif
+        return a;
     }
     T *data() { return p_.get(); }
     const T *data() const { return p_.get(); }
@@ -65,6 +77,9 @@ class ZeroArray {
     const T &operator[](size_t i) const { return p_[i]; }
 
   private:
+    explicit Array(T *p) : p_(p) {
+        if (!p_) throw std::bad_alloc();
+    }
     struct Free {
         void operator()(T *p) const { std::free(p); }
     };
@@ -153,14 +168,15 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
 // P (m x ld, the tiles that hold entries a < b) = sum over all k of V_ka V_kb for core nodes a, b, in T
 // arithmetic. ld: the row stride of P, a multiple of the tile's columns (tile.nr).
 template <class T>
-ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
+Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
                              const tiles::Tile<T> &tile, int64_t ld, int nthreads) {
     const int64_t m = core.m, nk = (int64_t)core.rows.size();
     const int64_t mr = tile.mr, nr = tile.nr;
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
     // D = V[K, C] packed twice: A[ip][r][t] = D[r][ip * mr + t] (the broadcast operand) and
     // B[jp][r][u] = D[r][jp * nr + u] (the vector operand); calloc's zeros pad the last panels.
-    ZeroArray<T> A((size_t)n_ip * nk * mr), B((size_t)n_jp * nk * nr), P((size_t)n_ip * mr * ld);
+    Array<T> A = Array<T>::zeroed((size_t)n_ip * nk * mr), B = Array<T>::zeroed((size_t)n_jp * nk * nr),
+             P = Array<T>::zeroed((size_t)n_ip * mr * ld);
     std::vector<uint8_t> in_rows(V.n, 0);
     for (int32_t k : core.rows) in_rows[k] = 1;
     // A chunk of rows at a time: scattered into a dense block (rows of ld entries, cache-local writes),
@@ -279,38 +295,6 @@ ZeroArray<T> core_products(const Csr &V, const std::vector<double> &vals, const 
     return P;
 }
 
-// An uninitialised array on transparent huge pages where the kernel offers them on request (madvise
-// mode): the triangle listing reads its arrays at random, and with 4 KiB pages nearly every such read
-// also missed the TLB.
-template <class T>
-class HugeArray {
-  public:
-    HugeArray() = default;
-    explicit HugeArray(size_t n) {
-        constexpr size_t kHuge = size_t(2) << 20;
-        const size_t bytes = std::max<size_t>(n, 1) * sizeof(T);
-        if (bytes >= kHuge) {
-            p_.reset(static_cast<T *>(std::aligned_alloc(kHuge, (bytes + kHuge - 1) / kHuge * kHuge)));
-#ifdef MADV_HUGEPAGE
-            if (p_) madvise(p_.get(), (bytes + kHuge - 1) / kHuge * kHuge, MADV_HUGEPAGE);
-#endif
-        } else {
-            p_.reset(static_cast<T *>(std::malloc(bytes)));
-        }
-        if (!p_) throw std::bad_alloc();
-    }
-    T *data() { return p_.get(); }
-    const T *data() const { return p_.get(); }
-    T &operator[](size_t i) { return p_[i]; }
-    const T &operator[](size_t i) const { return p_[i]; }
-
-  private:
-    struct Free {
-        void operator()(T *p) const { std::free(p); }
-    };
-    std::unique_ptr<T[], Free> p_;
-};
-
 // The sampler's graph on large graphs (the first-order graph no longer in the last-level cache): the
 // products P_ab = sum_k V_ak V_bk of every edge with an endpoint outside the core by listing each
 // triangle once (forward listing; Schank and Wagner, "Finding, counting and listing all triangles in large
@@ -334,7 +318,7 @@ struct Forward {
     };
     std::vector<int32_t> rank;  // node -> rank (n - 1: the highest degree)
     std::vector<int64_t> ptr;   // forward CSR: u -> edges (u, k), rank k > rank u, in V's order
-    HugeArray<Entry> adj;
+    Array<Entry> adj;
 };
 
 Forward forward_graph(const Csr &V, const std::vector<double> &vals, const std::vector<int32_t> &order,
@@ -350,7 +334,7 @@ Forward forward_graph(const Csr &V, const std::vector<double> &vals, const std::
         f.ptr[u + 1] = c;
     });
     for (int64_t u = 0; u < n; ++u) f.ptr[u + 1] += f.ptr[u];
-    f.adj = HugeArray<Forward::Entry>(f.ptr[n]);
+    f.adj = Array<Forward::Entry>::huge(f.ptr[n]);
     parallel_for(0, n, nthreads, 1024, [&](int64_t u, int) {
         int64_t e = f.ptr[u];
         for (int64_t p = V.ptr[u]; p < V.ptr[u + 1]; ++p)
@@ -443,7 +427,7 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
     const double bound = std::max(1e-300, vmax * vmax * (double)std::max<int64_t>(n, 1));
     const double scale = std::ldexp(1.0, (int)std::floor(std::log2(std::ldexp(1.0, 62) / bound)));
     std::vector<double> own(ne, 0.0);
-    HugeArray<int64_t> shared(ne);
+    Array<int64_t> shared = Array<int64_t>::huge(ne);
     std::memset(shared.data(), 0, (size_t)ne * sizeof(int64_t));
     constexpr int64_t kAhead = 4;
     const Forward::Entry *adj = f.adj.data();
@@ -558,8 +542,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     const Core core = find_core(V, order);
     if (core_size) *core_size = core.m;
     // P in double, or in float (the sampler's graph, as the reference computes it: spec 7.2)
-    ZeroArray<double> Pd;
-    ZeroArray<float> Pf;
+    Array<double> Pd;
+    Array<float> Pf;
     int64_t ld = 0;
     if (core.m > 0) {
         if (single) {
