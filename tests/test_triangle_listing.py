@@ -87,3 +87,15 @@ def test_large_graph_takes_the_listing_by_default(monkeypatch):
     small_auto = core.graph_signals(small_src, small_tgt, *gp, num_threads=2)
     small_off = signals(monkeypatch, small_src, small_tgt, gp, "off", 2)
     np.testing.assert_array_equal(small_auto["degree"], small_off["degree"])
+
+
+@pytest.mark.parametrize("scale", [3.0, 1.0])  # no edge at all; a complete graph K4
+def test_listing_on_tiny_graphs(monkeypatch, scale):
+    src = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]], float)
+    gp = ("quadratic", 0.05, 0.1, 0.99)
+    w = dense_w(src, src * scale, *gp)
+    s, f, low = dense_signals(w, True)
+    out = signals(monkeypatch, src, src * scale, gp, "on", 2)
+    np.testing.assert_allclose(out["degree"], s, rtol=1e-7)
+    np.testing.assert_allclose(out["highpass"], f, atol=1e-6)
+    np.testing.assert_allclose(out["lowpass"], low, rtol=1e-7)

@@ -423,9 +423,11 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
     const int64_t top = n - core.m;  // ranks >= top: the core
     double vmax = 0.0;
     for (int64_t e = 0; e < ne; ++e) vmax = std::max(vmax, (double)std::abs(f.adj[e].val));
-    // |a fixed-point sum| <= vmax^2 * (n - 2) < 2^62: scale = the largest power of two that keeps it so.
-    const double bound = std::max(1e-300, vmax * vmax * (double)std::max<int64_t>(n, 1));
-    const double scale = std::ldexp(1.0, (int)std::floor(std::log2(std::ldexp(1.0, 62) / bound)));
+    // |a fixed-point sum| <= vmax^2 * (n - 2) < 2^62: scale = the largest power of two that keeps it so
+    // (1 when every weight is 0: no term to add then).
+    const double bound = vmax * vmax * (double)std::max<int64_t>(n, 1);
+    const double scale =
+        bound > 0.0 ? std::ldexp(1.0, (int)std::floor(std::log2(std::ldexp(1.0, 62) / bound))) : 1.0;
     std::vector<double> own(ne, 0.0);
     Array<int64_t> shared = Array<int64_t>::huge(ne);
     std::memset(shared.data(), 0, (size_t)ne * sizeof(int64_t));
