@@ -435,16 +435,19 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
     const Forward::Entry *adj = f.adj.data();
     // P_vk's terms: a random write each, kept for later, when they go back to back (many cache misses in
     // flight instead of one, and no atomics), each thread summing those of its own range of edges.
+    // 8 bytes a term (use_triangles keeps the edge count below 2^32), in blocks: no copy as they grow.
     struct Deferred {
-        int64_t e;
-        double x;
+        uint32_t e;
+        float x;
     };
-    std::vector<std::vector<Deferred>> deferred(std::max(1, nthreads));
+    constexpr size_t kBlock = size_t(1) << 16;
+    std::vector<std::vector<std::vector<Deferred>>> deferred(std::max(1, nthreads));
     DynamicRange nodes(0, n, 64);
     parallel_region(nthreads, [&](int tid) {
         std::vector<uint64_t> bits((n + 63) / 64, 0);
         std::vector<int32_t> slot(n, 0);  // k -> offset of (u, k) in N+(u), read on hits only
-        std::vector<Deferred> &later = deferred[tid];
+        std::vector<std::vector<Deferred>> &later = deferred[tid];
+        later.emplace_back().reserve(kBlock);
         int64_t lo, hi;
         while (nodes.next(lo, hi)) for (int64_t u = lo; u < hi; ++u) {
             if (f.rank[u] >= top) continue;
@@ -477,7 +480,8 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
                     const double wvk = c->val, wuk = adj[e3].val;
                     sum += wuk * wvk;
                     own[e3] += wuv * wvk;
-                    later.push_back({c - adj, wuv * wuk});
+                    if (later.back().size() == kBlock) later.emplace_back().reserve(kBlock);
+                    later.back().push_back({(uint32_t)(c - adj), (float)(wuv * wuk)});
                 }
                 own[e1] += sum;
             }
@@ -493,9 +497,10 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
         int64_t *sh = shared.data();
         while (parts.next(part, part_end)) {
             const int64_t e_lo = ne * part / nparts, e_hi = ne * (part + 1) / nparts;
-            for (const auto &list : deferred)
-                for (const Deferred &d : list)
-                    if (d.e >= e_lo && d.e < e_hi) sh[d.e] += (int64_t)std::nearbyint(d.x * scale);
+            for (const auto &blocks : deferred)
+                for (const auto &list : blocks)
+                    for (const Deferred &d : list)
+                        if (d.e >= e_lo && d.e < e_hi) sh[d.e] += (int64_t)std::nearbyint((double)d.x * scale);
         }
     });
     const double inv = 1.0 / scale;
@@ -520,13 +525,14 @@ void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint
 // the real 5,000-node outdoor pairs: slower). FASTMAC_TRIANGLES=on | off forces it (tests, benchmarks).
 bool use_triangles(const Csr &V, const Core &core) {
     if (env_is("FASTMAC_TRIANGLES", "off")) return false;
-    if (env_is("FASTMAC_TRIANGLES", "on")) return true;
+    if (env_is("FASTMAC_TRIANGLES", "on")) return V.nnz() / 2 < (int64_t(1) << 32);
     int64_t outside = V.nnz();
     if (core.m > 0)
         for (int64_t i = 0; i < V.n; ++i)
             if (core.pos[i] >= 0)
                 for (int64_t p = V.ptr[i]; p < V.ptr[i + 1]; ++p) outside -= core.pos[V.col[p]] >= 0;
-    return outside >= (int64_t(1) << 21);
+    // (and below 2^32 forward edges: the listing's deferred terms index them in 32 bits)
+    return outside >= (int64_t(1) << 21) && V.nnz() / 2 < (int64_t(1) << 32);
 }
 
 }  // namespace
