@@ -5,6 +5,14 @@ numpy formula, to the gathers, and to one result for any number of threads."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -99,3 +107,55 @@ def test_listing_on_tiny_graphs(monkeypatch, scale):
     np.testing.assert_allclose(out["degree"], s, rtol=1e-7)
     np.testing.assert_allclose(out["highpass"], f, atol=1e-6)
     np.testing.assert_allclose(out["lowpass"], low, rtol=1e-7)
+
+
+# 50,000 outdoor-like correspondences: the sampler's graph (the listing) or MAC's (float64 gathers) takes
+# seconds a call here; the child repeats the call so that the signal lands inside the core.
+LARGE_GRAPH = """
+import numpy as np, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # a parent may have left SIGINT ignored
+sys.path.insert(0, {repo!r})
+from fastmac_exp import core as cpp
+rng = np.random.default_rng(0)
+room = np.array([60.0, 60.0, 4.0])
+src = rng.uniform(0, 1, (50000, 3)) * room
+tgt = src.copy()
+tgt[:1000] += rng.normal(0, 0.1, (1000, 3))
+tgt[1000:] = rng.uniform(0, 1, (49000, 3)) * room
+print("ready", flush=True)
+try:
+    for _ in range(30):
+        cpp.core().{call}(src, tgt, "quadratic", 0.06, 0.6, 0.9)
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+    sys.exit(130)
+print("finished", flush=True)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="sends SIGINT")
+@pytest.mark.parametrize("call", ["graph_signals", "graph_edges"])
+def test_ctrl_c_stops_a_large_second_order_graph(call):
+    """Ctrl-C inside the second-order products (the sampler's listing, MAC's gathers) of a 50,000-node
+    graph: the core polls for it and gives control back within about a second."""
+    repo = str(Path(__file__).resolve().parents[1])
+    proc = subprocess.Popen(
+        [sys.executable, "-c", LARGE_GRAPH.format(repo=repo, call=call)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(1.5)  # inside the first or second call, whichever stage
+        assert proc.poll() is None, "the child should still be computing"
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        watchdog = threading.Timer(60.0, proc.kill)  # a child that ignores SIGINT must not hang the suite
+        watchdog.start()
+        line = proc.stdout.readline().strip()
+        watchdog.cancel()
+        elapsed = time.perf_counter() - t0
+        rc = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == 130 and line == "interrupted"
+    assert elapsed < 2.0, f"took {elapsed:.2f} s to stop"

@@ -36,4 +36,23 @@ class Interrupt {
     bool hit_ = false;
 };
 
+// Ctrl-C for the loops of one parallel region: thread 0 (the caller) polls at its checks, and every
+// thread leaves its loop at its next check once one is seen; after the region, throw_if_hit() throws
+// Interrupted. Loops check once per chunk of work (a few milliseconds at most).
+class InterruptibleRegion {
+   public:
+    bool stopped(int tid) {
+        if (tid == 0 && !hit_.load(std::memory_order_relaxed) && interrupt_.check())
+            hit_.store(true, std::memory_order_relaxed);
+        return hit_.load(std::memory_order_relaxed);
+    }
+    void throw_if_hit() const {
+        if (hit_.load()) throw Interrupted();
+    }
+
+   private:
+    Interrupt interrupt_;
+    std::atomic<bool> hit_{false};
+};
+
 }  // namespace fastmac

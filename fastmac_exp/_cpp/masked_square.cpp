@@ -40,6 +40,7 @@
 #endif
 
 #include "dense_tiles.hpp"
+#include "interrupt.hpp"
 #include "mac_core.hpp"
 #include "parallel.hpp"
 
@@ -169,7 +170,7 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
 // arithmetic. ld: the row stride of P, a multiple of the tile's columns (tile.nr).
 template <class T>
 Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
-                             const tiles::Tile<T> &tile, int64_t ld, int nthreads) {
+                             const tiles::Tile<T> &tile, int64_t ld, int nthreads, InterruptibleRegion &ctrl_c) {
     const int64_t m = core.m, nk = (int64_t)core.rows.size();
     const int64_t mr = tile.mr, nr = tile.nr;
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
@@ -230,9 +231,9 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
     }
     group_start.push_back(n_ip);
     DynamicRange groups(0, (int64_t)group_start.size() - 1, 1);
-    parallel_region(nthreads, [&](int) {
+    parallel_region(nthreads, [&](int tid) {
         int64_t g, g_hi;
-        while (groups.next(g, g_hi)) {
+        while (!ctrl_c.stopped(tid) && groups.next(g, g_hi)) {
             const int64_t ip0 = group_start[g], ip1 = group_start[g + 1];
             for (int64_t jc = (ip0 * mr) / nr; jc < n_jp; jc += nc_panels) {
                 const int64_t jc_end = std::min(n_jp, jc + nc_panels);
@@ -275,9 +276,9 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
     const int64_t n_rest = (int64_t)nb_ptr.size() - 1;
     if (n_rest > 0) {
         DynamicRange blocks(0, (m + kSuper - 1) / kSuper, 1);
-        parallel_region(nthreads, [&](int) {
+        parallel_region(nthreads, [&](int tid) {
             int64_t lo, hi;
-            while (blocks.next(lo, hi)) {
+            while (!ctrl_c.stopped(tid) && blocks.next(lo, hi)) {
                 const int32_t a0 = (int32_t)(lo * kSuper), a1 = (int32_t)std::min<int64_t>(m, a0 + kSuper);
                 for (int64_t t = 0; t < n_rest; ++t) {
                     const int32_t *na = nb_a.data() + nb_ptr[t], *ne = nb_a.data() + nb_ptr[t + 1];
@@ -347,7 +348,8 @@ Forward forward_graph(const Csr &V, const std::vector<double> &vals, const std::
 // which does not probe the core's long rows): P_ua += sum over u's core neighbours b of W_ub W_ab. Core
 // row by core row: row a scattered densely (m entries, in L1 / L2) against the short lists of core
 // neighbours of each u next to a (kept compact, in L3). Each P_ua is one sum, by one thread.
-void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own, int nthreads) {
+void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own, int nthreads,
+                    InterruptibleRegion &ctrl_c) {
     const int64_t n = (int64_t)f.rank.size(), m = core.m, top = n - m;
     const Forward::Entry *adj = f.adj.data();
     // For each u outside the core: its core neighbours (core index, weight); for each core node a: the
@@ -393,10 +395,10 @@ void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own
         }
     }
     DynamicRange rows(0, m, 4);
-    parallel_region(nthreads, [&](int) {
+    parallel_region(nthreads, [&](int tid) {
         std::vector<double> dense(m, 0.0);
         int64_t lo, hi;
-        while (rows.next(lo, hi)) for (int64_t a = lo; a < hi; ++a) {
+        while (!ctrl_c.stopped(tid) && rows.next(lo, hi)) for (int64_t a = lo; a < hi; ++a) {
             if (aptr[a + 1] == aptr[a]) continue;
             const int32_t k = core_node[a];
             for (int64_t e = f.ptr[k]; e < f.ptr[k + 1]; ++e) dense[core.pos[adj[e].col]] = adj[e].val;
@@ -418,7 +420,8 @@ void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own
     });
 }
 
-std::vector<double> forward_products(const Forward &f, const Core &core, int nthreads) {
+std::vector<double> forward_products(const Forward &f, const Core &core, int nthreads,
+                                     InterruptibleRegion &ctrl_c) {
     const int64_t n = (int64_t)f.rank.size(), ne = f.ptr[n];
     const int64_t top = n - core.m;  // ranks >= top: the core
     double vmax = 0.0;
@@ -449,7 +452,7 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
         std::vector<std::vector<Deferred>> &later = deferred[tid];
         later.emplace_back().reserve(kBlock);
         int64_t lo, hi;
-        while (nodes.next(lo, hi)) for (int64_t u = lo; u < hi; ++u) {
+        while (!ctrl_c.stopped(tid) && nodes.next(lo, hi)) for (int64_t u = lo; u < hi; ++u) {
             if (f.rank[u] >= top) continue;
             const int64_t u0 = f.ptr[u], u1 = f.ptr[u + 1];
             if (u1 - u0 < 2) continue;
@@ -488,7 +491,9 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
             for (int64_t e = u0; e < u1; ++e) bits[adj[e].col >> 6] = 0;
         }
     });
-    if (core.m > 0) core_pair_sums(f, core, own, nthreads);
+    ctrl_c.throw_if_hit();
+    if (core.m > 0) core_pair_sums(f, core, own, nthreads, ctrl_c);
+    ctrl_c.throw_if_hit();
     // Fixed point: the sum of a thread's share is the same whichever thread listed each term.
     const int64_t nparts = std::max(1, nthreads);
     DynamicRange parts(0, nparts, 1);
@@ -549,6 +554,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     std::vector<int32_t> order = degree_order(V);
     const Core core = find_core(V, order);
     if (core_size) *core_size = core.m;
+    InterruptibleRegion ctrl_c;  // Ctrl-C: a 50,000-node graph takes seconds
     // P in double, or in float (the sampler's graph, as the reference computes it: spec 7.2)
     Array<double> Pd;
     Array<float> Pf;
@@ -557,11 +563,11 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         if (single) {
             const tiles::Tile<float> tile = pick_tile<float>();
             ld = (core.m + tile.nr - 1) / tile.nr * tile.nr;
-            Pf = core_products<float>(V, vals, core, tile, ld, nthreads);
+            Pf = core_products<float>(V, vals, core, tile, ld, nthreads, ctrl_c);
         } else {
             const tiles::Tile<double> tile = pick_tile<double>();
             ld = (core.m + tile.nr - 1) / tile.nr * tile.nr;
-            Pd = core_products<double>(V, vals, core, tile, ld, nthreads);
+            Pd = core_products<double>(V, vals, core, tile, ld, nthreads, ctrl_c);
         }
     }
     const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b
@@ -577,7 +583,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     // more than it saves (measured on the 5,000-correspondence outdoor pairs: 10-25 % slower there).
     if (single && use_triangles(V, core)) {
         const Forward f = forward_graph(V, vals, order, nthreads);
-        const std::vector<double> P = forward_products(f, core, nthreads);
+        ctrl_c.throw_if_hit();
+        const std::vector<double> P = forward_products(f, core, nthreads, ctrl_c);
         const int64_t top = n - core.m;
         parallel_for(0, n, nthreads, 512, [&](int64_t i, int) {
             int64_t e = f.ptr[i];
@@ -598,12 +605,13 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         return S;
     }
     DynamicRange rows(0, n, 8);
-    parallel_region(nthreads, [&](int) {
+    ctrl_c.throw_if_hit();
+    parallel_region(nthreads, [&](int tid) {
         // Row i of V scattered densely; zero elsewhere (k = i contributes nothing: no self-loops).
         std::vector<double> dense(n, 0.0);
         double *d = dense.data();
         int64_t lo, hi;
-        while (rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
+        while (!ctrl_c.stopped(tid) && rows.next(lo, hi)) for (int64_t i = lo; i < hi; ++i) {
             const bool ci = in_core(i);
             const int64_t di = deg(i);
             bool scattered = false;
@@ -643,6 +651,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
                 for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) d[col[p]] = 0.0;
         }
     });
+    ctrl_c.throw_if_hit();
     mirror_entries(V, S, done);
     return S;
 }
