@@ -35,10 +35,6 @@
 #include <string>
 #include <utility>
 
-#if defined(__linux__)
-#include <sys/mman.h>
-#endif
-
 #include "dense_tiles.hpp"
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -51,26 +47,17 @@ namespace {
 constexpr int64_t kL2Bytes = 384 * 1024;  // the packed B block kept in L2 (kc x nc)
 constexpr int64_t kSuper = 64;  // core rows one thread takes at a time in the pass over the nodes outside K
 
-// An array on malloc's memory, not value-initialised (std::vector would write every byte once more).
-// zeroed: from calloc; with the module's malloc setting (memory.cpp) a large one reuses the pages of the
-// previous call. huge: uninitialised, on transparent huge pages where the kernel gives them on request
-// (madvise mode): the triangle listing reads its arrays at random, and with 4 KiB pages nearly every such
-// read also missed the TLB.
+// An array on malloc's memory, not value-initialised (std::vector would write every byte once more):
+// zeroed from calloc (with the module's malloc setting, memory.cpp, a large one reuses the pages of the
+// previous call) or left uninitialised. (Transparent huge pages for the triangle listing's arrays, tried:
+// no faster on the 50,000-correspondence graphs.)
 template <class T>
 class Array {
   public:
     Array() = default;
     static Array zeroed(size_t n) { return Array(static_cast<T *>(std::calloc(std::max<size_t>(n, 1), sizeof(T)))); }
-    static Array huge(size_t n) {
-        constexpr size_t kHuge = size_t(2) << 20;
-        const size_t bytes = std::max<size_t>(n, 1) * sizeof(T);
-        if (bytes < kHuge) return Array(static_cast<T *>(std::malloc(bytes)));
-        const size_t rounded = (bytes + kHuge - 1) / kHuge * kHuge;
-        Array a(static_cast<T *>(std::aligned_alloc(kHuge, rounded)));
-#ifdef MADV_HUGEPAGE
-        madvise(a.data(), rounded, MADV_HUGEPAGE);
-#endif
-        return a;
+    static Array uninitialised(size_t n) {
+        return Array(static_cast<T *>(std::malloc(std::max<size_t>(n, 1) * sizeof(T))));
     }
     T *data() { return p_.get(); }
     const T *data() const { return p_.get(); }
@@ -335,7 +322,7 @@ Forward forward_graph(const Csr &V, const std::vector<double> &vals, const std::
         f.ptr[u + 1] = c;
     });
     for (int64_t u = 0; u < n; ++u) f.ptr[u + 1] += f.ptr[u];
-    f.adj = Array<Forward::Entry>::huge(f.ptr[n]);
+    f.adj = Array<Forward::Entry>::uninitialised(f.ptr[n]);
     parallel_for(0, n, nthreads, 1024, [&](int64_t u, int) {
         int64_t e = f.ptr[u];
         for (int64_t p = V.ptr[u]; p < V.ptr[u + 1]; ++p)
@@ -432,7 +419,7 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
     const double scale =
         bound > 0.0 ? std::ldexp(1.0, (int)std::floor(std::log2(std::ldexp(1.0, 62) / bound))) : 1.0;
     std::vector<double> own(ne, 0.0);
-    Array<int64_t> shared = Array<int64_t>::huge(ne);
+    Array<int64_t> shared = Array<int64_t>::uninitialised(ne);
     std::memset(shared.data(), 0, (size_t)ne * sizeof(int64_t));
     constexpr int64_t kAhead = 4;
     const Forward::Entry *adj = f.adj.data();
