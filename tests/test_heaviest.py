@@ -6,11 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import igraph
@@ -22,6 +17,7 @@ from hypothesis import strategies as st
 
 from fastmac_exp import core as cpp
 from fastmac_exp.backends import python_mac
+from tests.conftest import interrupt_child
 
 core = cpp.core()
 REPO = Path(__file__).resolve().parents[1]
@@ -307,26 +303,9 @@ print("finished", flush=True)
 
 @pytest.mark.skipif(os.name != "posix", reason="sends SIGINT")
 def test_ctrl_c_stops_a_long_clique_search_within_a_second():
-    proc = subprocess.Popen(
-        [sys.executable, "-c", EXPLODING.format(repo=str(REPO))],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout.readline().strip() == "ready"
-        time.sleep(1.0)  # well inside the search
-        assert proc.poll() is None, "the search should still be running"
-        t0 = time.perf_counter()
-        proc.send_signal(signal.SIGINT)
-        watchdog = threading.Timer(30.0, proc.kill)  # a child that ignores SIGINT must not hang the suite
-        watchdog.start()
-        line = proc.stdout.readline().strip()  # printed as soon as the core has given control back
-        watchdog.cancel()
-        elapsed = time.perf_counter() - t0
-        rc = proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    rc, line, elapsed = interrupt_child(
+        EXPLODING.format(repo=str(REPO)), after_s=1.0
+    )  # well inside the search
     assert rc == 130 and line == "interrupted"
     assert elapsed < 2.0, f"took {elapsed:.2f} s to stop"  # ~0.02 s on an idle machine
 

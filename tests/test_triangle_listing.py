@@ -6,17 +6,13 @@ numpy formula, to the gathers, and to one result for any number of threads."""
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fastmac_exp import core as cpp
+from tests.conftest import interrupt_child
 from tests.test_cpp_core import clustered, dense_signals, dense_w
 
 core = cpp.core()
@@ -139,23 +135,8 @@ def test_ctrl_c_stops_a_large_second_order_graph(call):
     """Ctrl-C inside the second-order products (the sampler's listing, MAC's gathers) of a 50,000-node
     graph: the core polls for it and gives control back within about a second."""
     repo = str(Path(__file__).resolve().parents[1])
-    proc = subprocess.Popen(
-        [sys.executable, "-c", LARGE_GRAPH.format(repo=repo, call=call)], stdout=subprocess.PIPE, text=True
-    )
-    try:
-        assert proc.stdout.readline().strip() == "ready"
-        time.sleep(1.5)  # inside the first or second call, whichever stage
-        assert proc.poll() is None, "the child should still be computing"
-        t0 = time.perf_counter()
-        proc.send_signal(signal.SIGINT)
-        watchdog = threading.Timer(60.0, proc.kill)  # a child that ignores SIGINT must not hang the suite
-        watchdog.start()
-        line = proc.stdout.readline().strip()
-        watchdog.cancel()
-        elapsed = time.perf_counter() - t0
-        rc = proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    # 1.5 s: inside the first or second call, whichever stage
+    code = LARGE_GRAPH.format(repo=repo, call=call)
+    rc, line, elapsed = interrupt_child(code, after_s=1.5, watchdog_s=60.0)
     assert rc == 130 and line == "interrupted"
     assert elapsed < 2.0, f"took {elapsed:.2f} s to stop"
