@@ -24,6 +24,7 @@ number of keypoints of the pair (~5,000 at a 5 cm voxel).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -515,31 +516,49 @@ def bench_outdoor(args) -> list[OutdoorRow]:
     return rows
 
 
+@contextlib.contextmanager
+def core_switch(name: str, value: str | None):
+    """The core's environment switch `name` (FASTMAC_DENSE_CORE, FASTMAC_TRIANGLES, ...) set to `value`
+    (None: unset, the default) for the block, then restored."""
+    old = os.environ.get(name)
+    if value is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = value
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = old
+
+
 def signals_ms(
-    corr: Correspondences, reps: int, threads: int, single: bool, dense: bool, threshold: float | None = None
+    corr: Correspondences,
+    reps: int,
+    threads: int,
+    single: bool,
+    dense: bool,
+    threshold: float | None = None,
+    triangles: str | None = None,
 ) -> tuple[float, int]:
     """Median ms of the sampler's graph and signals (graph_signals), and the dense core's size.
-    threshold=1.0 leaves no edge: what remains is the first-order screen over all N^2 / 2 pairs."""
-    import os
+    threshold=1.0 leaves no edge: what remains is the first-order screen over all N^2 / 2 pairs.
+    triangles: FASTMAC_TRIANGLES (on | off; None: the default, by the core's gate)."""
     from dataclasses import replace
 
     from fastmac_exp.params import mac_params_for
 
     g = mac_params_for("kitti", "fpfh").graph
     g = g if threshold is None else replace(g, threshold=threshold)
-    old = os.environ.get("FASTMAC_DENSE_CORE")
-    os.environ["FASTMAC_DENSE_CORE"] = "on" if dense else "off"
-    try:
+    dense_core = core_switch("FASTMAC_DENSE_CORE", "on" if dense else "off")
+    with dense_core, core_switch("FASTMAC_TRIANGLES", triangles):
         times, out = [], None
         for _ in range(reps):
             t0 = time.perf_counter()
             out = cpp.graph_signals(corr.src, corr.tgt, g, single=single, num_threads=threads)
             times.append((time.perf_counter() - t0) * 1e3)
-    finally:
-        if old is None:
-            del os.environ["FASTMAC_DENSE_CORE"]
-        else:
-            os.environ["FASTMAC_DENSE_CORE"] = old
     return statistics.median(times), int(out.dense_core)
 
 
@@ -547,8 +566,8 @@ def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:
     """The sampler's second-order graph (issue 11, item 3): sparse gathers against the dense-core product."""
     print("\nSampler graph + signals (graph_signals, 5,000 correspondences, KITTI/FPFH kernel), median ms")
     head = (
-        f"{'pair':34} {'core':>5} | {'screen':>7} {'sparse':>8} {'core f64':>9} {'core f32':>9} | "
-        f"{'x f64':>6} {'x f32':>6} | {'sgemm':>6}"
+        f"{'pair':34} {'core':>5} | {'screen':>7} {'sparse':>8} {'core f64':>9} {'core f32':>9} "
+        f"{'listing':>8} | {'x f64':>6} {'x f32':>6} | {'sgemm':>6}"
     )
     print(head)
     print("-" * len(head))
@@ -556,15 +575,18 @@ def bench_products(pairs: list[tuple[str, Correspondences]], args) -> None:
         screen, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True, threshold=1.0)
         sp_ms, _ = signals_ms(corr, args.reps, args.threads, single=False, dense=False)
         d64, m = signals_ms(corr, args.reps, args.threads, single=False, dense=True)
-        d32, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True)
+        d32, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True, triangles="off")
+        tri, _ = signals_ms(corr, args.reps, args.threads, single=True, dense=True, triangles="on")
         print(
-            f"{name[:34]:34} {m:5d} | {screen:7.1f} {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} | "
+            f"{name[:34]:34} {m:5d} | {screen:7.1f} {sp_ms:8.1f} {d64:9.1f} {d32:9.1f} {tri:8.1f} | "
             f"{sp_ms / d64:6.1f} {sp_ms / d32:6.1f} | {sgemm_ms(m, args.reps):6.1f}"
         )
         sys.stdout.flush()
     print("screen: the first-order screen alone (threshold 1: no edge); sparse: every product by gathers")
     print("(FASTMAC_DENSE_CORE=off); core: the dense core's products as a matrix product in float64 or")
-    print("float32 (the sampler's default, as FastMAC's torch code); core = its nodes; sgemm: numpy's")
+    print("float32 (the sampler's default, as FastMAC's torch code); listing: core f32 with the rest by the")
+    print("triangle listing (FASTMAC_TRIANGLES=on; by default it starts at 2^21 entries outside the core, so")
+    print("not on these pairs); core = its nodes; sgemm: numpy's")
     print(
         "(OpenBLAS) full float32 product of a core-sized matrix, its BLAS threads: a reference for the core"
     )
@@ -591,11 +613,10 @@ def bench_outdoor_large(args) -> None:
     for inl in (0.02, 0.05, 0.1):
         corr, gt = synthetic(50_000, inlier_ratio=inl, noise=0.1, seed=1, room=(60.0, 60.0, 4.0))
         # the sampler's graph by the per-edge gathers (FASTMAC_TRIANGLES=off), then as by default
-        os.environ["FASTMAC_TRIANGLES"] = "off"
-        t0 = time.perf_counter()
-        sampler("cpp").sample(corr, 0.05, g, "kitti", np.random.default_rng(0))
-        t_gathers = (time.perf_counter() - t0) * 1e3
-        del os.environ["FASTMAC_TRIANGLES"]
+        with core_switch("FASTMAC_TRIANGLES", "off"):
+            t0 = time.perf_counter()
+            sampler("cpp").sample(corr, 0.05, g, "kitti", np.random.default_rng(0))
+            t_gathers = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         idx = sampler("cpp").sample(corr, 0.05, g, "kitti", np.random.default_rng(0)).indices
         t_s = (time.perf_counter() - t0) * 1e3

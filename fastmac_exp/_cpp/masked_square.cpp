@@ -110,8 +110,10 @@ tiles::Tile<T> pick_tile() {
 
 struct Core {
     int64_t m = 0;
-    std::vector<int32_t> pos;   // node -> index in C, or -1
-    std::vector<int32_t> rows;  // K, the rows of D
+    std::vector<int32_t> pos;    // node -> index in C, or -1
+    std::vector<int32_t> nodes;  // C by index: core index -> node
+    std::vector<int32_t> rows;   // K, the rows of D
+    int64_t inside = 0;          // entries of V with both ends in C (each core edge twice)
 };
 
 // The nodes by decreasing degree (ties: by index); the core, when there is one, is a prefix of it.
@@ -123,12 +125,13 @@ std::vector<int32_t> degree_order(const Csr &V) {
     return order;
 }
 
-// The core and K (m = 0: no dense core worth a matrix product). order: degree_order(V), sorted in place
-// (its first m entries: the core, by index).
+// The core and K (m = 0: no dense core worth a matrix product). order: set to degree_order(V) when the
+// search gets that far (else left empty), its first m entries then sorted by index.
 Core find_core(const Csr &V, std::vector<int32_t> &order) {
     Core core;
     const int64_t n = V.n;
     if (n < 256 || env_is("FASTMAC_DENSE_CORE", "off")) return core;
+    order = degree_order(V);
     auto deg = [&](int32_t i) { return V.ptr[i + 1] - V.ptr[i]; };
     int64_t m = 0;
     for (int64_t t = 1; t <= n; ++t)
@@ -148,6 +151,8 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
         return core;
     }
     core.m = m;
+    core.nodes.assign(order.begin(), order.begin() + m);
+    core.inside = inside;
     for (int64_t k = 0; k < n; ++k)
         if (4 * deg_core[k] >= m) core.rows.push_back((int32_t)k);
     return core;
@@ -333,10 +338,11 @@ Forward forward_graph(const Csr &V, const std::vector<double> &vals, const std::
 
 // The triangles (u, a, b) of a node u outside the core with two core nodes a, b (skipped by the listing,
 // which does not probe the core's long rows): P_ua += sum over u's core neighbours b of W_ub W_ab. Core
-// row by core row: row a scattered densely (m entries, in L1 / L2) against the short lists of core
-// neighbours of each u next to a (kept compact, in L3). Each P_ua is one sum, by one thread.
-void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own, int nthreads,
-                    InterruptibleRegion &ctrl_c) {
+// row by core row: row a of V scattered densely over the core (m entries, in L1 / L2) against the short
+// lists of core neighbours of each u next to a (kept compact, in L3). Each P_ua is one sum, by one
+// thread. Weights in float32, as in the listing.
+void core_pair_sums(const Csr &V, const std::vector<double> &vals, const Forward &f, const Core &core,
+                    std::vector<double> &own, int nthreads, InterruptibleRegion &ctrl_c) {
     const int64_t n = (int64_t)f.rank.size(), m = core.m, top = n - m;
     const Forward::Entry *adj = f.adj.data();
     // For each u outside the core: its core neighbours (core index, weight); for each core node a: the
@@ -361,35 +367,15 @@ void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own
                 by_a[fill[a]++] = {(int32_t)u, e};
             }
     }
-    std::vector<int32_t> core_node(m);
-    for (int64_t k = 0; k < n; ++k)
-        if (f.rank[k] >= top) core_node[core.pos[k]] = (int32_t)k;
-    // Row a of the core: its forward entries plus the mirrors of the entries pointing at it (core nodes
-    // of lower rank), gathered once.
-    std::vector<int64_t> lptr(m + 1, 0);
-    for (int64_t b = 0; b < m; ++b) {
-        const int32_t k = core_node[b];
-        for (int64_t e = f.ptr[k]; e < f.ptr[k + 1]; ++e) ++lptr[core.pos[adj[e].col] + 1];
-    }
-    for (int64_t a = 0; a < m; ++a) lptr[a + 1] += lptr[a];
-    std::vector<Forward::Entry> lower(lptr[m]);
-    {
-        std::vector<int64_t> at(lptr.begin(), lptr.end() - 1);
-        for (int64_t b = 0; b < m; ++b) {
-            const int32_t k = core_node[b];
-            for (int64_t e = f.ptr[k]; e < f.ptr[k + 1]; ++e)
-                lower[at[core.pos[adj[e].col]]++] = {(int32_t)b, adj[e].val};
-        }
-    }
     DynamicRange rows(0, m, 4);
     parallel_region(nthreads, [&](int tid) {
         std::vector<double> dense(m, 0.0);
         int64_t lo, hi;
         while (!ctrl_c.stopped(tid) && rows.next(lo, hi)) for (int64_t a = lo; a < hi; ++a) {
             if (aptr[a + 1] == aptr[a]) continue;
-            const int32_t k = core_node[a];
-            for (int64_t e = f.ptr[k]; e < f.ptr[k + 1]; ++e) dense[core.pos[adj[e].col]] = adj[e].val;
-            for (int64_t q = lptr[a]; q < lptr[a + 1]; ++q) dense[lower[q].col] = lower[q].val;
+            const int32_t k = core.nodes[a];
+            for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
+                if (core.pos[V.col[p]] >= 0) dense[core.pos[V.col[p]]] = (float)vals[p];
             for (int64_t r = aptr[a]; r < aptr[a + 1]; ++r) {
                 const int32_t u = by_a[r].first;
                 double s0 = 0.0, s1 = 0.0;
@@ -401,14 +387,14 @@ void core_pair_sums(const Forward &f, const Core &core, std::vector<double> &own
                 if (c < ce) s0 += dense[c->col] * (double)c->val;
                 own[by_a[r].second] += s0 + s1;  // dense[a] = 0: no self term
             }
-            for (int64_t e = f.ptr[k]; e < f.ptr[k + 1]; ++e) dense[core.pos[adj[e].col]] = 0.0;
-            for (int64_t q = lptr[a]; q < lptr[a + 1]; ++q) dense[lower[q].col] = 0.0;
+            for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p)
+                if (core.pos[V.col[p]] >= 0) dense[core.pos[V.col[p]]] = 0.0;
         }
     });
 }
 
-std::vector<double> forward_products(const Forward &f, const Core &core, int nthreads,
-                                     InterruptibleRegion &ctrl_c) {
+std::vector<double> forward_products(const Csr &V, const std::vector<double> &vals, const Forward &f,
+                                     const Core &core, int nthreads, InterruptibleRegion &ctrl_c) {
     const int64_t n = (int64_t)f.rank.size(), ne = f.ptr[n];
     const int64_t top = n - core.m;  // ranks >= top: the core
     double vmax = 0.0;
@@ -423,8 +409,8 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
     std::memset(shared.data(), 0, (size_t)ne * sizeof(int64_t));
     constexpr int64_t kAhead = 4;
     const Forward::Entry *adj = f.adj.data();
-    // P_vk's terms: a random write each, kept for later, when they go back to back (many cache misses in
-    // flight instead of one, and no atomics), each thread summing those of its own range of edges.
+    // P_vk's terms: kept for later and summed in fixed point, each thread those of its own range of edges
+    // (no atomics, and the same sums for any number of threads).
     // 8 bytes a term (use_triangles keeps the edge count below 2^32), in blocks: no copy as they grow.
     struct Deferred {
         uint32_t e;
@@ -479,7 +465,7 @@ std::vector<double> forward_products(const Forward &f, const Core &core, int nth
         }
     });
     ctrl_c.throw_if_hit();
-    if (core.m > 0) core_pair_sums(f, core, own, nthreads, ctrl_c);
+    if (core.m > 0) core_pair_sums(V, vals, f, core, own, nthreads, ctrl_c);
     ctrl_c.throw_if_hit();
     // Fixed point: the sum of a thread's share is the same whichever thread listed each term.
     const int64_t nparts = std::max(1, nthreads);
@@ -518,13 +504,8 @@ void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint
 bool use_triangles(const Csr &V, const Core &core) {
     if (env_is("FASTMAC_TRIANGLES", "off")) return false;
     if (env_is("FASTMAC_TRIANGLES", "on")) return V.nnz() / 2 < (int64_t(1) << 32);
-    int64_t outside = V.nnz();
-    if (core.m > 0)
-        for (int64_t i = 0; i < V.n; ++i)
-            if (core.pos[i] >= 0)
-                for (int64_t p = V.ptr[i]; p < V.ptr[i + 1]; ++p) outside -= core.pos[V.col[p]] >= 0;
     // (and below 2^32 forward edges: the listing's deferred terms index them in 32 bits)
-    return outside >= (int64_t(1) << 21) && V.nnz() / 2 < (int64_t(1) << 32);
+    return V.nnz() - core.inside >= (int64_t(1) << 21) && V.nnz() / 2 < (int64_t(1) << 32);
 }
 
 }  // namespace
@@ -538,7 +519,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     auto deg = [&](int64_t i) { return ptr[i + 1] - ptr[i]; };
     // The work is ~ sum over edges of the smaller degree: serial only for small graphs.
     nthreads = resolve_threads(nthreads, std::max<int64_t>(n, V.nnz() / 16));
-    std::vector<int32_t> order = degree_order(V);
+    std::vector<int32_t> order;
     const Core core = find_core(V, order);
     if (core_size) *core_size = core.m;
     InterruptibleRegion ctrl_c;  // Ctrl-C: a 50,000-node graph takes seconds
@@ -569,9 +550,10 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     // parity rests on; so do small graphs, where the gathers hit the cache and the listing's set-up costs
     // more than it saves (measured on the 5,000-correspondence outdoor pairs: 10-25 % slower there).
     if (single && use_triangles(V, core)) {
+        if (order.empty()) order = degree_order(V);  // no core search ran (small or switched off)
         const Forward f = forward_graph(V, vals, order, nthreads);
         ctrl_c.throw_if_hit();
-        const std::vector<double> P = forward_products(f, core, nthreads, ctrl_c);
+        const std::vector<double> P = forward_products(V, vals, f, core, nthreads, ctrl_c);
         const int64_t top = n - core.m;
         parallel_for(0, n, nthreads, 512, [&](int64_t i, int) {
             int64_t e = f.ptr[i];
