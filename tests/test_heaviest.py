@@ -113,17 +113,20 @@ def test_near_clique_of_hundred_nodes(missing):
         assert got == [tuple(range(n))]
 
 
-SWITCHES = ("FASTMAC_DOMINANCE", "FASTMAC_MATCHING", "FASTMAC_STEP3")
+SWITCHES = ("FASTMAC_DOMINANCE", "FASTMAC_MATCHING", "FASTMAC_STEP3", "FASTMAC_GLOBAL_GRAPH")
 
 
 @contextlib.contextmanager
-def pruning(dominance: str, matching: str, step3: str | None = None):
+def pruning(dominance: str, matching: str, step3: str | None = None, global_graph: str | None = None):
     """The near-clique switches of the branch and bound (read by the core at each call): dominance and
-    the matching colouring on or off, step 3 per node or shared (None: the core's choice by density)."""
+    the matching colouring on or off, step 3 per node or shared (None: the core's choice by density),
+    one graph for every root or one per root (global_graph 'off'; None: the core's choice)."""
     old = {k: os.environ.get(k) for k in SWITCHES}
     os.environ["FASTMAC_DOMINANCE"], os.environ["FASTMAC_MATCHING"] = dominance, matching
     if step3:
         os.environ["FASTMAC_STEP3"] = step3
+    if global_graph:
+        os.environ["FASTMAC_GLOBAL_GRAPH"] = global_graph
     try:
         yield
     finally:
@@ -187,6 +190,39 @@ def test_near_clique_pruning_keeps_the_selection_exact(kind, n, seed, k, integer
                     got, out = selection(n, i, j, w, k, "bnb", 1 + (dominance == matching))
                 assert got == want, (kind, n, seed, k, integer_weights, dominance, matching, step3)
                 assert out["cap_hit"] == ""
+    for step3 in ("pernode", "shared"):  # the near-cliques' one graph (the default here) against per root
+        with pruning("on", "on", step3, "off"):
+            got, out = selection(n, i, j, w, k, "bnb")
+        assert got == want, (kind, n, seed, k, integer_weights, step3, "per-root graphs")
+
+
+def test_near_cliques_are_searched_on_one_graph(capfd):
+    """On a near-clique steps 1-3 share one graph and its weight matrix (Searcher::make_global) instead of
+    building one per root; elsewhere, and with FASTMAC_GLOBAL_GRAPH=off, one per root. The same cliques
+    either way, with the same search nodes (the bits run in the same rank order)."""
+    rng = np.random.default_rng(3)
+    a = sparse_conflicts(120, rng, "paths")
+    i, j = np.nonzero(a)
+    w = second_order_weights(a, rng)
+    sparse_i, sparse_j, sparse_w = graph("sparse", 60, 1, False)
+    old = os.environ.get("FASTMAC_DEBUG_SEARCH")
+    os.environ["FASTMAC_DEBUG_SEARCH"] = "1"
+    try:
+        capfd.readouterr()
+        got, out = selection(120, i, j, w, 4, "bnb")
+        assert "one global graph" in capfd.readouterr().err
+        with pruning("on", "on", None, "off"):
+            per_root, out_off = selection(120, i, j, w, 4, "bnb")
+        assert "per-root graph" in capfd.readouterr().err
+        selection(60, sparse_i, sparse_j, sparse_w, 3, "bnb")
+        assert "per-root graph" in capfd.readouterr().err
+    finally:
+        if old is None:
+            os.environ.pop("FASTMAC_DEBUG_SEARCH", None)
+        else:
+            os.environ["FASTMAC_DEBUG_SEARCH"] = old
+    assert got == per_root == reference(120, i, j, w, 4)
+    assert out["search_nodes"] == out_off["search_nodes"] > 0
 
 
 def test_near_clique_pruning_cuts_the_search():

@@ -81,6 +81,9 @@ constexpr int64_t kNearCliqueConflicts = 16;
 // Step 3 runs one search per node left to do where the nodes that can be in a clique are at least this
 // dense (near-cliques: 0.95-0.999 on the reduced outdoor graphs; sparse indoor graphs ~0.01).
 constexpr double kPerNodeDensity = 0.9;
+// Steps 2 and 3 on a near-clique search one graph built once (Searcher::make_global) up to this many
+// nodes (its weight matrix: 8 bytes per pair, 128 MB at the cap); above it, one local graph per root.
+constexpr int64_t kGlobalMax = 4096;
 
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
@@ -113,7 +116,7 @@ class Searcher {
     // reaches `target`; target rises with what is found.
     void search(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl, double &target) {
         if ((int)cand.size() + 1 < min_size_) return;
-        setup(root, cand, excl);
+        if (!setup(root, cand, excl)) return;
         target_ = &target;
         targets_ = nullptr;
         aborted_ = false;
@@ -128,7 +131,7 @@ class Searcher {
     void search_all(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl,
                     std::vector<double> &targets) {
         if ((int)cand.size() + 1 < min_size_) return;
-        setup(root, cand, excl);
+        if (!setup(root, cand, excl)) return;
         targets_ = &targets;
         aborted_ = false;
         R_.clear();
@@ -139,6 +142,10 @@ class Searcher {
     // A heavy maximal clique through z, built greedily (each step adds the candidate most attached to
     // the clique so far), offered as a starting lower bound for its members.
     void greedy(int32_t z) {
+        if (global_) {
+            greedy_global(z);
+            return;
+        }
         C_.clear();
         ca_.clear();
         for (int64_t p = g_.ptr[z]; p < g_.ptr[z + 1]; ++p) {
@@ -179,10 +186,95 @@ class Searcher {
 
     std::vector<std::vector<int32_t>> greedy_;  // the greedy cliques of this thread, weighed later
 
+    // greedy() on the global graph: the same picks (ties to the lowest node index, as the merge of sorted
+    // rows keeps the first) and the same sums, so the same cliques.
+    void greedy_global(int32_t z) {
+        members_.assign(1, z);
+        const int r = loc_[z];
+        if (r >= 0) {
+            U_.assign(adj_.begin() + (size_t)r * W_, adj_.begin() + (size_t)(r + 1) * W_);
+            if (ca_.size() < (size_t)np_) ca_.resize(np_);
+            const double *gr = gm_.data() + (size_t)r * np_;
+            for (int w = 0; w < W_; ++w)
+                for (uint64_t bits = U_[w]; bits; bits &= bits - 1) {
+                    const int x = w * 64 + __builtin_ctzll(bits);
+                    ca_[x] = gr[x];
+                }
+            for (;;) {
+                int k = -1;
+                for (int w = 0; w < W_; ++w)
+                    for (uint64_t bits = U_[w]; bits; bits &= bits - 1) {
+                        const int x = w * 64 + __builtin_ctzll(bits);
+                        if (k < 0 || ca_[x] > ca_[k] || (ca_[x] == ca_[k] && L_[x] < L_[k])) k = x;
+                    }
+                if (k < 0) break;
+                members_.push_back(L_[k]);
+                const uint64_t *rk = adj_.data() + (size_t)k * W_;
+                const double *gk = gm_.data() + (size_t)k * np_;
+                for (int w = 0; w < W_; ++w) {
+                    U_[w] &= rk[w];
+                    for (uint64_t bits = U_[w]; bits; bits &= bits - 1) {
+                        const int x = w * 64 + __builtin_ctzll(bits);
+                        ca_[x] += gk[x];
+                    }
+                }
+            }
+        }
+        if ((int)members_.size() < min_size_) return;
+        std::sort(members_.begin(), members_.end());
+        greedy_.push_back(members_);
+    }
+
     // Offers a clique found outside the search (members ascending, weight w).
     void offer_clique(const std::vector<int32_t> &m, double w) {
         members_ = m;
         offer(w);
+    }
+
+    // Near-cliques: the local graph of a root is nearly the whole graph, and building it per root (its
+    // bits and an np x np weight matrix) is cubic over the roots; it dominated the search on the largest
+    // reduced graphs (50,000 correspondences at 10 % inliers: 738 nodes, ~130 roots). Instead one graph of
+    // `nodes` (the nodes that can be in a clique of size >= min_size, in rank order) is built once, and a
+    // root's search takes its candidates and excluded vertices as bit masks over it. Nodes outside it can
+    // be dropped: a clique of size >= min_size has no member, and no vertex extending it, of degree
+    // < min_size - 1. The bits run in rank order, as the per-root graphs' candidates do.
+    bool is_global() const { return global_; }
+
+    void make_global(const std::vector<int32_t> &nodes) {
+        global_ = true;
+        L_ = nodes;
+        np_ = nl_ = (int)nodes.size();
+        W_ = (nl_ + 63) / 64;
+        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
+        adj_.assign((size_t)nl_ * W_, 0);
+        gm_.assign((size_t)np_ * np_, 0.0);
+        for (int k = 0; k < np_; ++k) {
+            const int32_t u = L_[k];
+            uint64_t *row = adj_.data() + (size_t)k * W_;
+            double *grow = gm_.data() + (size_t)k * np_;
+            for (int64_t p = g_.ptr[u]; p < g_.ptr[u + 1]; ++p) {
+                const int32_t x = loc_[g_.col[p]];
+                if (x < 0) continue;
+                row[x >> 6] |= uint64_t(1) << (x & 63);
+                grow[x] = vals_[p];
+            }
+        }
+    }
+
+    // NodeChoice::weight's sum, in its order (so bit-identical), from the global graph's weight matrix
+    // where there is one: the cliques of a near-clique have hundreds of members, and a galloping search
+    // per pair in the rows of the graph cost ~1-4 ms per clique (a third of the search at 50,000 / 10 %).
+    double weigh(const std::vector<int32_t> &m) {
+        if (!global_) return choice_.weight(m.data(), m.size());
+        const size_t k = m.size();
+        hit_.resize(k);
+        for (size_t a = 0; a < k; ++a) hit_[a] = loc_[m[a]];
+        double s = 0.0;
+        for (size_t b = 1; b < k; ++b) {
+            const double *row = gm_.data() + (size_t)hit_[b] * np_;
+            for (size_t a = 0; a < b; ++a) s += row[hit_[a]];
+        }
+        return s;
     }
 
    private:
@@ -209,6 +301,7 @@ class Searcher {
     double *target_ = nullptr;             // one target for every node (search), or
     std::vector<double> *targets_ = nullptr;  // a target per node (search_all)
     bool aborted_ = false;
+    bool global_ = false;  // make_global: one graph for every root
     const bool dominance_ = !env_is("FASTMAC_DOMINANCE", "off");
     const bool matching_ = !env_is("FASTMAC_MATCHING", "off");
     std::vector<int32_t> mv_, hp_, hc_, hdeg_, mate_, vis_, order2_, col2_;
@@ -216,7 +309,10 @@ class Searcher {
     std::vector<double> val2_;
     int stamp_ = 0;
 
-    void setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
+    // The root's graph: candidates local 0..np-1, excluded np..nl-1 (or, after make_global, the masks over
+    // the global graph). False when too few candidates are left to reach min_size.
+    bool setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
+        if (global_) return setup_global(root, cand, excl);
         L_ = cand;
         L_.insert(L_.end(), excl.begin(), excl.end());
         np_ = (int)cand.size();
@@ -265,6 +361,34 @@ class Searcher {
         }
         for (int k = 0; k < nl_; ++k) loc_[L_[k]] = -1;
         root_ = root;
+        return true;
+    }
+
+    bool setup_global(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
+        const int r = loc_[root];
+        if (r < 0) return false;
+        if ((int)levels_.size() < np_ + 2) levels_.resize(np_ + 2);
+        Level &top = levels_[0];
+        top.P.assign(W_, 0);
+        top.X.assign(W_, 0);
+        int count = 0;
+        for (int32_t x : cand)
+            if (loc_[x] >= 0) {
+                top.P[loc_[x] >> 6] |= uint64_t(1) << (loc_[x] & 63);
+                ++count;
+            }
+        if (count + 1 < min_size_) return false;
+        for (int32_t x : excl)
+            if (loc_[x] >= 0) top.X[loc_[x] >> 6] |= uint64_t(1) << (loc_[x] & 63);
+        top.a.assign(np_, 0.0);
+        const double *gr = gm_.data() + (size_t)r * np_;
+        for (int w = 0; w < W_; ++w)
+            for (uint64_t bits = top.P[w]; bits; bits &= bits - 1) {
+                const int x = w * 64 + __builtin_ctzll(bits);
+                top.a[x] = gr[x];
+            }
+        root_ = root;
+        return true;
     }
 
     bool should_stop() {
@@ -301,7 +425,7 @@ class Searcher {
         members_.push_back(root_);
         for (int32_t r : R_) members_.push_back(L_[r]);
         std::sort(members_.begin(), members_.end());
-        const double w = choice_.weight(members_.data(), members_.size());
+        const double w = weigh(members_);
         offer(w);
         if (!targets_) {
             *target_ = std::max(*target_, w);
@@ -748,6 +872,19 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     const bool per_node =
         env_is("FASTMAC_STEP3", "pernode") || (near_clique && !env_is("FASTMAC_STEP3", "shared"));
 
+    // The rank order of steps 2 and 3 (each clique searched from its lowest-ranked vertex), and on a
+    // near-clique the one graph they search (Searcher::make_global; step 1 weighs its cliques on it).
+    const std::vector<int32_t> order = degeneracy_order(g);
+    std::vector<int32_t> rank(n);
+    for (int64_t i = 0; i < n; ++i) rank[order[i]] = (int32_t)i;
+    if (near_clique && active <= kGlobalMax && !env_is("FASTMAC_GLOBAL_GRAPH", "off")) {
+        std::vector<int32_t> nodes;
+        nodes.reserve(active);
+        for (int32_t v : order)
+            if (degree(v) + 1 >= min_size) nodes.push_back(v);
+        searchers[0]->make_global(nodes);
+    }
+
     // 1. a greedy clique through every node; cliques from neighbouring seeds often coincide, so each
     // distinct one is weighed and offered once (in node order: the count does not depend on threads).
     // On a near-clique the greedy cliques are huge and nearly all the same: serially, a node that an
@@ -776,15 +913,12 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         all.erase(std::unique(all.begin(), all.end(), [](const auto *a, const auto *b) { return *a == *b; }),
                   all.end());
         Searcher &s0 = *searchers[0];
-        for (const auto *m : all) s0.offer_clique(*m, choice.weight(m->data(), m->size()));
+        for (const auto *m : all) s0.offer_clique(*m, s0.weigh(*m));
         for (auto &s : searchers) std::vector<std::vector<int32_t>>().swap(s->greedy_);
     }
     collect();
 
     // 2. the heaviest clique overall, from the dense core outwards (serial: one shared target)
-    const std::vector<int32_t> order = degeneracy_order(g);
-    std::vector<int32_t> rank(n);
-    for (int64_t i = 0; i < n; ++i) rank[order[i]] = (int32_t)i;
     double best = 0.0;
     for (int64_t v = 0; v < n; ++v) best = std::max(best, lb[v]);
     double gmax = 0.0;
@@ -881,8 +1015,10 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     if (debug) {
         int64_t all = 0;
         for (auto &s : searchers) all += s->nodes;
-        std::fprintf(stderr, "heaviest: best %.6g, step 2 nodes %lld, step 3: %lld nodes to do, %lld nodes\n", best,
-                     (long long)step2_nodes, (long long)n_todo, (long long)(all - step2_nodes));
+        std::fprintf(stderr,
+                     "heaviest: best %.6g, step 2 nodes %lld, step 3: %lld nodes to do, %lld nodes; %s graph\n", best,
+                     (long long)step2_nodes, (long long)n_todo, (long long)(all - step2_nodes),
+                     searchers[0]->is_global() ? "one global" : "per-root");
     }
     int64_t offered = 0;
     bool capped = false;
