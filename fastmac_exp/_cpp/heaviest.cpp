@@ -39,6 +39,8 @@
 //    matching of the conflicts grown by augmenting paths (Kuhn) are used where they bound tighter.
 // On the reduced outdoor graphs of bench_search.py they cut the search nodes 10-250x (the 50,000-pair
 // cases at 5 % from over 1e6 nodes, capped, to 2,500-5,500, exact).
+// On near-cliques every root's local graph is nearly the whole graph: steps 1-3 then share one graph
+// built once (Searcher::make_global) instead of building one per root, which was cubic in its size.
 // The default search ("auto", mac.cpp) runs the enumeration first, under a work budget: on sparse
 // graphs it is 1.5-3x faster than this search; this one takes over where the enumeration explodes.
 // The branch and bound (per search): candidates P with a greedy colouring in independent sets (Tomita's
