@@ -240,8 +240,6 @@ class Searcher {
     // root's search takes its candidates and excluded vertices as bit masks over it. Nodes outside it can
     // be dropped: a clique of size >= min_size has no member, and no vertex extending it, of degree
     // < min_size - 1. The bits run in rank order, as the per-root graphs' candidates do.
-    bool is_global() const { return global_; }
-
     void make_global(const std::vector<int32_t> &nodes) {
         global_ = true;
         L_ = nodes;
@@ -262,6 +260,8 @@ class Searcher {
             }
         }
     }
+
+    bool is_global() const { return global_; }
 
     // NodeChoice::weight's sum, in its order (so bit-identical), from the global graph's weight matrix
     // where there is one: the cliques of a near-clique have hundreds of members, and a galloping search
