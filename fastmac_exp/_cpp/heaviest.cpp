@@ -242,10 +242,7 @@ class Searcher {
     // < min_size - 1. The bits run in rank order, as the per-root graphs' candidates do.
     void make_global(const std::vector<int32_t> &nodes) {
         global_ = true;
-        L_ = nodes;
-        np_ = nl_ = (int)nodes.size();
-        W_ = (nl_ + 63) / 64;
-        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
+        index_local(nodes, {});
         adj_.assign((size_t)nl_ * W_, 0);
         gm_.assign((size_t)np_ * np_, 0.0);
         for (int k = 0; k < np_; ++k) {
@@ -315,12 +312,7 @@ class Searcher {
     // the global graph). False when too few candidates are left to reach min_size.
     bool setup(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
         if (global_) return setup_global(root, cand, excl);
-        L_ = cand;
-        L_.insert(L_.end(), excl.begin(), excl.end());
-        np_ = (int)cand.size();
-        nl_ = (int)L_.size();
-        W_ = (nl_ + 63) / 64;
-        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
+        index_local(cand, excl);
         // Local adjacency from the rows of the candidates only: candidate-candidate bits both ways,
         // candidate-excluded bits into both rows. Excluded-excluded bits are never read (pivots count
         // neighbours among the candidates; X is only ever intersected with candidates' rows), and
@@ -364,6 +356,16 @@ class Searcher {
         for (int k = 0; k < nl_; ++k) loc_[L_[k]] = -1;
         root_ = root;
         return true;
+    }
+
+    // Local indices: cand as 0..np-1, then excl as np..nl-1 (loc_: node -> local index).
+    void index_local(const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
+        L_ = cand;
+        L_.insert(L_.end(), excl.begin(), excl.end());
+        np_ = (int)cand.size();
+        nl_ = (int)L_.size();
+        W_ = (nl_ + 63) / 64;
+        for (int k = 0; k < nl_; ++k) loc_[L_[k]] = k;
     }
 
     bool setup_global(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
