@@ -17,8 +17,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from fastmac_exp.errors import BackendUnavailable
-from fastmac_exp.graph.signals import GraphSignals
 from fastmac_exp.params import GraphParams
+from fastmac_exp.types import GraphSignals
 
 MODULE = "fastmac_exp._mac_core"
 CORE_ENV = "FASTMAC_CORE_SO"
@@ -162,3 +162,56 @@ def maximal_cliques(
         num_threads=num_threads,
     )
     return CliqueSearch(list(cliques), str(cap_hit))
+
+
+def anchor_degree(
+    src: np.ndarray, tgt: np.ndarray, gp: GraphParams, anchors: np.ndarray, num_threads: int = 0
+) -> np.ndarray:
+    """sum_r W_{i a_r} over the anchors (a_r != i) for every node: the estimate's pilot (anchors.cpp)."""
+    return np.asarray(
+        core().anchor_degree(
+            points(src), points(tgt), *graph_args(gp), np.ascontiguousarray(anchors, dtype=np.int64),
+            num_threads=num_threads,
+        )
+    )  # fmt: skip
+
+
+def anchors_within(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    gp: GraphParams,
+    anchors: np.ndarray,
+    min_anchors: int,
+    pair_budget: float,
+    num_threads: int = 0,
+) -> int:
+    """How many of the anchor draws (a prefix) keep the estimate's pair work within pair_budget."""
+    return int(
+        core().anchors_within(
+            points(src), points(tgt), *graph_args(gp), np.ascontiguousarray(anchors, dtype=np.int64),
+            int(min_anchors), float(pair_budget), num_threads=num_threads,
+        )
+    )  # fmt: skip
+
+
+def anchor_signals(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    gp: GraphParams,
+    anchors: np.ndarray,
+    inv_q: np.ndarray,
+    num_threads: int = 0,
+) -> GraphSignals:
+    """FastMAC's signals estimated from anchors drawn i.i.d. with probabilities q (inv_q = 1 / q of each
+    draw): unbiased for the generalized degree (anchors.cpp, docs/estimated_scores.md)."""
+    out = core().anchor_signals(
+        points(src), points(tgt), *graph_args(gp), np.ascontiguousarray(anchors, dtype=np.int64),
+        np.ascontiguousarray(inv_q, dtype=np.float64), num_threads=num_threads,
+    )  # fmt: skip
+    return GraphSignals(
+        degree=np.asarray(out["degree"]),
+        highpass=np.asarray(out["highpass"]),
+        lowpass=np.asarray(out["lowpass"]),
+        n_edges=-1,
+        anchors=len(anchors),
+    )

@@ -102,6 +102,7 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
             row=row,
             cache=comp.cache,
             cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
+            samples=None if cfg.get("samples") is None else int(cfg.samples),
         )
         return outcome
     except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run
@@ -144,6 +145,9 @@ def run_experiment(
     ratio = cfg.get("ratio")
     if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
         raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
+    samples = cfg.get("samples")
+    if samples is not None and (isinstance(samples, bool) or not isinstance(samples, int) or samples < 3):
+        raise InputError(f"samples must be null or an integer >= 3, got {samples!r} (config key: samples)")
     resume = cfg.get("resume")
     # resume=auto: continue this run's own directory if it holds results (sweep members, whose directories
     # Hydra names; `resume` is left out of their names), else start it
@@ -239,7 +243,9 @@ def _save_config(cfg: DictConfig, run_dir: Path) -> None:
     path = run_dir / "config.yaml"
     if cfg.get("resume") and path.exists():
         old = OmegaConf.load(path)
-        keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "seed", "protocol", "graph", "mac")
+        keys = (
+            "dataset", "descriptor", "sampler", "backend", "ratio", "samples", "seed", "protocol", "graph", "mac"
+        )  # fmt: skip
         changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
         if changed:
             log.warning(

@@ -18,7 +18,6 @@ from fastmac_exp.backends.base import Backend
 from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
-from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.metrics import pose_errors
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.row import PairRow
@@ -53,6 +52,7 @@ def run_pair(
     row: PairRow | None = None,
     cache: CorrespondenceCache | None = None,
     cache_key: str | None = None,
+    samples: int | None = None,
 ) -> PairOutcome:
     """Describe, sample, register and evaluate one pair; exceptions propagate to the caller.
 
@@ -73,8 +73,10 @@ def run_pair(
         pair.label(corr)
     key = descriptor.graph_key
     params = mac_params_for(pair.family, key, pair.resolution, graph_overrides, mac_overrides)
-    # FastMAC's sampling graph fixes the resolution at FIXED_RESOLUTION (spec 7.2); MAC's uses the pair's
-    sample_graph = mac_params_for(pair.family, key, FIXED_RESOLUTION, graph_overrides, mac_overrides).graph
+    # FastMAC's sampling graph fixes the resolution (spec 7.2: FIXED_RESOLUTION, rescaled for object scans);
+    # MAC's uses the pair's
+    res = pair.sampler_resolution
+    sample_graph = mac_params_for(pair.family, key, res, graph_overrides, mac_overrides).graph
     row.set(
         resolution=pair.resolution,
         n_in=len(corr),
@@ -82,10 +84,13 @@ def run_pair(
         inlier_ratio_in=corr.inlier_ratio,
     )
     result, sample = register_correspondences(
-        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph
+        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
+    if sample.scores_used:
+        row.set(scores=sample.scores_used, anchors=sample.anchors)
     row.set(
+        samples=samples,
         ratio=sample.ratio,
         n_kept=len(result.kept),
         inlier_ratio_kept=float(kept_labels.mean()) if kept_labels is not None else np.nan,
@@ -140,16 +145,18 @@ def register_correspondences(
     family: str = "3dmatch",
     rng: np.random.Generator | None = None,
     sample_graph: GraphParams | None = None,
+    samples: int | None = None,
 ) -> tuple[RegistrationResult, SampleResult]:
     """Sample, then run MAC on the kept correspondences. Indices in the result refer to `corr`.
 
     sample_graph: the sampler's compatibility graph, when it differs from MAC's (FastMAC's graph fixes the
-    resolution at 0.006 where MAC computes it from the clouds); None = MAC's.
+    resolution at 0.006 where MAC computes it from the clouds); None = MAC's. samples: keep min(samples, N)
+    instead of floor(N * ratio).
     """
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()
     t0 = time.perf_counter()
-    sample = sampler.sample(corr, ratio, sample_graph or params.graph, family, rng)
+    sample = sampler.sample(corr, ratio, sample_graph or params.graph, family, rng, samples=samples)
     kept = sample.indices
     result = backend.register(corr.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3

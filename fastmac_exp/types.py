@@ -98,6 +98,9 @@ class Pair:
     re_thresh_deg: float = 15.0
     te_thresh_m: float = 0.3
     resolution: float = FIXED_RESOLUTION  # MAC's Gaussian kernel: alpha = 10 res (fastmac_exp.resolution)
+    # FastMAC's sampling graph: the spec's fixed 3DMatch resolution (7.2), rescaled with the rules of pairs
+    # that are not at room scale (object scans), where 0.006 m would link nearly every pair
+    sampler_resolution: float = FIXED_RESOLUTION
     scene: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -134,3 +137,15 @@ class RegistrationResult:
     search_nodes: int = 0  # branch-and-bound search-tree nodes (0 for the enumeration)
     timings: dict[str, float] = field(default_factory=dict)
     scores: np.ndarray | None = None  # per-node sampling scores over the input, if a sampler ran
+
+
+@dataclass
+class GraphSignals:
+    """Node signals of the graph the samplers score (spec 7.2-7.3), exact or estimated."""
+
+    degree: np.ndarray  # generalized degree s_i = sum_j SOG_ij
+    highpass: np.ndarray  # f = (diag(s) - SOG) s, signed
+    lowpass: np.ndarray  # (I + D^-1 SOG) s
+    n_edges: int  # first-order edges (unordered pairs); -1 where the graph was never built (estimate)
+    dense_core: int = 0  # C++ engine: nodes whose products ran as a dense matrix product (0: all sparse)
+    anchors: int = 0  # the estimate: anchors the signals were estimated from (0: exact)

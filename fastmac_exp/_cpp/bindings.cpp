@@ -3,6 +3,7 @@
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/string.h>
 
+#include <cmath>
 #include <cstring>
 
 #include "interrupt.hpp"
@@ -141,6 +142,52 @@ nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &
     d["lowpass"] = to_numpy(std::move(s.lowpass));
     d["n_edges"] = s.n_edges;
     d["dense_core"] = s.dense_core;
+    return d;
+}
+
+nb::object anchor_degree(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+                         double threshold, const Indices &anchors, int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    const auto gp = graph_params(kernel, alpha, tau, threshold);
+    std::vector<double> deg;
+    {
+        nb::gil_scoped_release nogil;
+        deg = fastmac::anchor_degree(src.data(), tgt.data(), n, gp, anchors.data(), (int64_t)anchors.shape(0),
+                                     num_threads);
+    }
+    return to_numpy(std::move(deg));
+}
+
+int64_t anchors_within(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+                       double threshold, const Indices &anchors, int64_t min_anchors, double pair_budget,
+                       int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    const auto gp = graph_params(kernel, alpha, tau, threshold);
+    nb::gil_scoped_release nogil;
+    return fastmac::anchors_within(src.data(), tgt.data(), n, gp, anchors.data(), (int64_t)anchors.shape(0),
+                                   min_anchors, pair_budget, num_threads);
+}
+
+nb::dict anchor_signals(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
+                        double threshold, const Indices &anchors, const Weights &inv_q, int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    const auto gp = graph_params(kernel, alpha, tau, threshold);
+    const int64_t m = (int64_t)anchors.shape(0);
+    if ((int64_t)inv_q.shape(0) != m) throw std::invalid_argument("anchors and inv_q must have the same length");
+    for (int64_t r = 0; r < m; ++r)
+        if (!(std::isfinite(inv_q.data()[r]) && inv_q.data()[r] > 0.0))
+            throw std::invalid_argument("inv_q must be finite and positive");
+    fastmac::Signals s;
+    {
+        nb::gil_scoped_release nogil;
+        s = fastmac::anchor_signals(src.data(), tgt.data(), n, gp, anchors.data(), inv_q.data(), m, num_threads);
+    }
+    nb::dict d;
+    d["degree"] = to_numpy(std::move(s.degree));
+    d["highpass"] = to_numpy(std::move(s.highpass));
+    d["lowpass"] = to_numpy(std::move(s.lowpass));
+    d["n_edges"] = s.n_edges;
+    d["dense_core"] = 0;
     return d;
 }
 
@@ -318,6 +365,17 @@ NB_MODULE(_mac_core, m) {
           "Generalized degree, signed high-pass and low-pass responses of the SOG (spec 7.2-7.3). single: the "
           "dense core's products in float32, as the reference computes this graph (relative error ~1e-6); "
           "False: float64 throughout.");
+    m.def("anchor_degree", &anchor_degree, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
+          "anchors"_a, "num_threads"_a = 0,
+          "sum_r W_{i a_r} over the anchors (a_r != i) for every node: the estimate's pilot degree.");
+    m.def("anchors_within", &anchors_within, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
+          "anchors"_a, "min_anchors"_a, "pair_budget"_a, "num_threads"_a = 0,
+          "The longest prefix of the anchor draws (min_anchors * 2^k, or all) whose pair work "
+          "sum_i nnz_i^2 / 2 fits pair_budget (min_anchors when none does).");
+    m.def("anchor_signals", &anchor_signals, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
+          "anchors"_a, "inv_q"_a, "num_threads"_a = 0,
+          "Estimated degree, high-pass and low-pass responses of FastMAC's SOG from anchors drawn i.i.d. "
+          "with probabilities q (inv_q = 1 / q of each draw); unbiased for the degree (anchors.cpp).");
     m.def("maximal_cliques", &maximal_cliques, "n"_a, "i"_a, "j"_a, "min_size"_a = 3, "max_cliques"_a = 0,
           "time_limit_s"_a = 0.0, "num_threads"_a = 0,
           "Every maximal clique of size >= min_size in canonical order, and the cap that stopped the search "

@@ -98,6 +98,19 @@ struct Signals {
 // Sampler signals (spec 7.2-7.3) on the SOG with (FastMAC) or without (MAC) self-loops.
 Signals graph_signals(const Csr &W, const std::vector<double> &G, bool self_loops, int nthreads);
 
+// Estimated sampler signals (anchors.cpp, docs/estimated_scores.md). anchor_degree: sum_r W_{i a_r} over
+// the anchors a (a_r != i) for every node, the pilot of the estimate. anchor_signals: unbiased estimates
+// of the degree and of the terms of the high-pass and low-pass responses (FastMAC's self-loop graph) from
+// m anchors drawn i.i.d. from q, with inv_q[r] = 1 / q(a_r); n_edges is -1 (the graph is never built).
+std::vector<double> anchor_degree(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                                  const int64_t *anchors, int64_t m, int nthreads);
+Signals anchor_signals(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                       const int64_t *anchors, const double *inv_q, int64_t m, int nthreads);
+// The most anchors (a prefix of the draws: min_anchors * 2^k, or all m) whose pair work
+// sum_i nnz_i^2 / 2 stays within pair_budget; min_anchors when none does.
+int64_t anchors_within(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                       const int64_t *anchors, int64_t m, int64_t min_anchors, double pair_budget, int nthreads);
+
 // ---------------------------------------------------------------------------------------------
 // Maximal cliques
 

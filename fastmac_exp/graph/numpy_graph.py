@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fastmac_exp.graph.signals import GraphSignals
 from fastmac_exp.params import GAUSSIAN, GraphParams
+from fastmac_exp.types import GraphSignals
 
 
 def pair_inconsistency(src: np.ndarray, tgt: np.ndarray, rows: slice | np.ndarray) -> np.ndarray:

@@ -7,25 +7,13 @@ the reference the others are tested against).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import GraphParams
+from fastmac_exp.types import GraphSignals
 
 ENGINES = ("auto", "cpp", "torch", "python")
-
-
-@dataclass
-class GraphSignals:
-    """Node signals of the graph the samplers score."""
-
-    degree: np.ndarray  # generalized degree s_i = sum_j SOG_ij
-    highpass: np.ndarray  # f = (diag(s) - SOG) s, signed
-    lowpass: np.ndarray  # (I + D^-1 SOG) s
-    n_edges: int  # first-order edges (unordered pairs)
-    dense_core: int = 0  # C++ engine: nodes whose products ran as a dense matrix product (0: all sparse)
 
 
 def compute_signals(

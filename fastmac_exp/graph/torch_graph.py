@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.graph.signals import GraphSignals
 from fastmac_exp.params import GAUSSIAN, GraphParams
+from fastmac_exp.types import GraphSignals
 
 
 def _first_order(src: torch.Tensor, tgt: torch.Tensor, gp: GraphParams, block: int) -> torch.Tensor:

@@ -27,7 +27,9 @@ class SampleResult:
     # ms: "sampling" (all of it) and, where the sampler has them, its two stages: "sampling_prep" (scores:
     # graph and signal, or the eigendecomposition) and "sampling_draw" (the draw or the greedy selection)
     timings: dict[str, float] = field(default_factory=dict)
-    ratio: float = 1.0  # the ratio the sampler used (1.0 for `none`, whatever was asked)
+    ratio: float = 1.0  # the ratio the sampler used: k / N (1.0 for `none`, whatever was asked)
+    scores_used: str = ""  # graph filters: "exact" or "estimate" (what `scores=auto` chose)
+    anchors: int = 0  # the estimate's anchors (0: exact scores)
 
 
 def sample_count(n: int, ratio: float, min_count: int = 3) -> int:
@@ -41,6 +43,13 @@ def sample_count(n: int, ratio: float, min_count: int = 3) -> int:
             f"use ratio >= {min_count / max(n, 1):.4g}"
         )
     return k
+
+
+def count_from_samples(n: int, samples: int, min_count: int = 3) -> int:
+    """k = min(samples, n): a sample size given as a count (FastMAC's KITTI code draws a fixed count)."""
+    if isinstance(samples, bool) or not isinstance(samples, int | np.integer) or samples < min_count:
+        raise InputError(f"samples must be an integer >= {min_count} (a clique's size), got {samples!r}")
+    return min(int(samples), n)
 
 
 def gumbel_keys(scores: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
@@ -84,17 +93,24 @@ class Sampler:
     keeps_everything = False  # True: the ratio is ignored (plain MAC)
 
     def sample(
-        self, corr: Correspondences, ratio: float, gp: GraphParams, family: str, rng: np.random.Generator
+        self,
+        corr: Correspondences,
+        ratio: float,
+        gp: GraphParams,
+        family: str,
+        rng: np.random.Generator,
+        samples: int | None = None,
     ) -> SampleResult:
+        """Keep k = floor(N * ratio), or k = min(samples, N) when `samples` is given (it wins over ratio)."""
         n = len(corr)
-        k = sample_count(n, ratio)
+        k = sample_count(n, ratio) if samples is None else count_from_samples(n, samples)
         t0 = time.perf_counter()
         if k >= n:
             res = SampleResult(indices=np.arange(n, dtype=np.int64))
         else:
             res = self.select(corr, k, gp, family, rng)
         res.timings["sampling"] = (time.perf_counter() - t0) * 1e3
-        res.ratio = float(ratio)
+        res.ratio = float(ratio) if samples is None else len(res.indices) / max(n, 1)
         return res
 
     def select(
@@ -105,7 +121,12 @@ class Sampler:
         t1 = time.perf_counter()
         idx, zero_filled = draw_proportional(scores, k, rng)
         timings = {"sampling_prep": (t1 - t0) * 1e3, "sampling_draw": (time.perf_counter() - t1) * 1e3}
-        return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled, timings=timings)
+        return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled, timings=timings,
+                            **self.score_info())  # fmt: skip
+
+    def score_info(self) -> dict:
+        """What the last `scores` call used (graph filters: exact or estimated scores)."""
+        return {}
 
     def scores(
         self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator

@@ -8,11 +8,13 @@ import numpy as np
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import family as family_record
 from fastmac_exp.graph import GraphSignals, compute_signals
+from fastmac_exp.graph.estimate import EstimateParams, choose_scores, estimate_signals
 from fastmac_exp.params import GraphParams
 from fastmac_exp.samplers.base import Sampler, minmax
 from fastmac_exp.types import Correspondences
 
 FILTERS = ("highpass", "lowpass", "allpass")
+SCORES = ("exact", "estimate", "auto")
 
 
 def filter_response(sig: GraphSignals, filt: str) -> np.ndarray:
@@ -34,6 +36,10 @@ class GraphFilterSampler(Sampler):
     "minmax" or "none". squared: use |f|^2 as the paper writes instead of the code's |f|.
     self_loops: FastMAC's graph keeps W_ii = 1 (spec 7.2); False uses MAC's zero-diagonal SOG.
     impl: auto | cpp | torch | python; device: cpu or cuda (torch path).
+    scores: exact (the whole graph, the reference), estimate (from anchors: docs/estimated_scores.md) or
+    auto (exact where its predicted cost is small, else the estimate); estimate: the estimate's budget
+    (EstimateParams' fields). The estimate's randomness is a child stream of the run's, so `auto` that
+    picks the exact scores draws the same sample as `exact`.
     """
 
     def __init__(
@@ -44,11 +50,24 @@ class GraphFilterSampler(Sampler):
         self_loops: bool = True,
         impl: str = "auto",
         device: str = "cpu",
+        scores: str = "auto",
+        estimate: EstimateParams | dict | None = None,
     ) -> None:
         if filter not in FILTERS:
             raise InputError(f"unknown graph filter {filter!r}; expected one of {FILTERS}")
         if normalize not in ("auto", "minmax", "none"):
             raise InputError(f"sampler.normalize must be auto, minmax or none, got {normalize!r}")
+        if scores not in SCORES:
+            raise InputError(f"sampler.scores must be one of {', '.join(SCORES)}, got {scores!r}")
+        if estimate is None or isinstance(estimate, EstimateParams):
+            self.estimate = estimate or EstimateParams()
+        else:
+            try:
+                self.estimate = EstimateParams(**dict(estimate))
+            except TypeError as exc:
+                raise InputError(f"sampler.estimate: {exc}") from None
+        self.score_mode = scores
+        self._used: dict = {}
         self.filter = filter
         self.name = filter + ("_squared" if squared else "")
         self.normalize = normalize
@@ -60,7 +79,7 @@ class GraphFilterSampler(Sampler):
     def scores(
         self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
     ) -> np.ndarray:
-        sig = compute_signals(corr.src, corr.tgt, gp, self.self_loops, self.impl, self.device)
+        sig = self.signals(corr, gp, rng)
         r = filter_response(sig, self.filter)
         if self.squared:
             r = r**2
@@ -68,3 +87,29 @@ class GraphFilterSampler(Sampler):
         if norm == "auto":
             norm = family_record(family).sampler_normalize
         return minmax(r) if norm == "minmax" else r
+
+    def signals(self, corr: Correspondences, gp: GraphParams, rng: np.random.Generator) -> GraphSignals:
+        """Exact or estimated signals, as `scores` says; records which (score_info)."""
+        mode = self.score_mode
+        if mode == "estimate" and not (self.self_loops and self.impl in ("auto", "cpp")):
+            raise InputError(
+                "sampler.scores=estimate estimates FastMAC's graph in the C++ core: it needs "
+                f"self_loops=true and impl=auto|cpp (got self_loops={self.self_loops}, impl={self.impl})"
+            )
+        if mode == "auto" and not (self.self_loops and self.impl in ("auto", "cpp")):
+            mode = "exact"
+        p = None
+        if mode != "exact":
+            # a child stream: the parent's draws (the sample itself) do not depend on the estimate's
+            (est_rng,) = rng.spawn(1)
+            if mode == "auto":
+                mode, p = choose_scores(corr.src, corr.tgt, gp, self.estimate, est_rng)
+        if mode == "exact":
+            sig = compute_signals(corr.src, corr.tgt, gp, self.self_loops, self.impl, self.device)
+        else:
+            sig = estimate_signals(corr.src, corr.tgt, gp, est_rng, self.estimate, pilot_result=p)
+        self._used = {"scores_used": mode, "anchors": sig.anchors}
+        return sig
+
+    def score_info(self) -> dict:
+        return dict(self._used)

@@ -45,7 +45,7 @@ class NoSampler(Sampler):
     name = "none"
     keeps_everything = True
 
-    def sample(self, corr, ratio, gp, family, rng) -> SampleResult:
+    def sample(self, corr, ratio, gp, family, rng, samples=None) -> SampleResult:
         return SampleResult(
             indices=np.arange(len(corr), dtype=np.int64), timings={"sampling": 0.0}, ratio=1.0
         )

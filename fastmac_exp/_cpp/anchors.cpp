@@ -1,0 +1,251 @@
+// Estimated sampler signals from anchor correspondences (docs/estimated_scores.md): every node is tested
+// against m anchors only, so the cost is O(N m + sum_i nnz_i^2) instead of the N^2 / 2 pair tests and the
+// triangle work of the exact graph.
+//
+// With W the first-order graph with self-loops (W_ii = 1), FastMAC's generalized degree is
+//     s_i = (W^3)_ii = 1 + 3 d_i + T_i,   d_i = sum_{j != i} W_ij^2,   T_i = sum_{j != k; j, k != i} W_ij W_jk W_ki,
+// and its high-pass response f_i = s_i^2 - t_i with t_i = sum_j SOG_ij s_j
+//     = (1 + d_i) s_i + 2 sum_{j != i} W_ij^2 s_j + sum_{j != k} W_ij W_jk W_ki s_j.
+// Anchors a_1..a_m are drawn i.i.d. from q (by the caller); with v_r = W_{i a_r} / q_{a_r} (0 when a_r = i),
+//     d^_i = 1/m sum_r v_r W_{i a_r},   T^_i = 1/(m(m-1)) sum_{r != t} v_r v_t W_{a_r a_t}
+// (W_{a_r a_t} = 0 when a_r = a_t), which are unbiased for d_i and T_i, and the same sums weighted by the
+// anchors' own s^ estimate the terms of t_i. Each row is one thread's serial sum in anchor order: the
+// result does not depend on the thread count.
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <vector>
+
+#include "interrupt.hpp"
+#include "mac_core.hpp"
+#include "parallel.hpp"
+
+namespace fastmac {
+
+namespace {
+
+// The largest inconsistency that can still make an edge (as graph.cpp's max_distance).
+double edge_distance(const GraphParams &gp) {
+    if (gp.kernel == Kernel::Gaussian)
+        return gp.threshold < 1.0 ? gp.alpha * std::sqrt(-2.0 * std::log(gp.threshold)) : 0.0;
+    return gp.tau * std::sqrt(1.0 - gp.threshold);
+}
+
+// The anchors' coordinates, contiguous and in float, centred on the first anchor. The estimate works in
+// float throughout: its own sampling error is many orders above float rounding.
+struct AnchorSet {
+    int64_t m = 0;
+    std::vector<int64_t> idx;
+    std::vector<float> px, py, pz, qx, qy, qz;
+    double cp[3] = {0, 0, 0}, cq[3] = {0, 0, 0};
+    float max_d = 0.f;  // an edge needs d <= max_d (the kernels are decreasing in d)
+    float inv_2a2 = 0.f, inv_t2 = 0.f;
+    bool gaussian = true;
+    float threshold = 1.f;
+};
+
+AnchorSet make_anchors(const double *src, const double *tgt, int64_t n, const int64_t *anchors, int64_t m,
+                       const GraphParams &gp) {
+    AnchorSet A;
+    A.m = m;
+    A.idx.assign(anchors, anchors + m);
+    for (int64_t r = 0; r < m; ++r)
+        if (A.idx[r] < 0 || A.idx[r] >= n) throw std::invalid_argument("anchor index out of range");
+    if (m > 0)
+        for (int c = 0; c < 3; ++c) A.cp[c] = src[3 * A.idx[0] + c], A.cq[c] = tgt[3 * A.idx[0] + c];
+    A.px.resize(m), A.py.resize(m), A.pz.resize(m), A.qx.resize(m), A.qy.resize(m), A.qz.resize(m);
+    for (int64_t r = 0; r < m; ++r) {
+        const double *p = src + 3 * A.idx[r], *q = tgt + 3 * A.idx[r];
+        A.px[r] = (float)(p[0] - A.cp[0]), A.py[r] = (float)(p[1] - A.cp[1]), A.pz[r] = (float)(p[2] - A.cp[2]);
+        A.qx[r] = (float)(q[0] - A.cq[0]), A.qy[r] = (float)(q[1] - A.cq[1]), A.qz[r] = (float)(q[2] - A.cq[2]);
+    }
+    A.max_d = (float)edge_distance(gp);
+    A.gaussian = gp.kernel == Kernel::Gaussian;
+    A.inv_2a2 = (float)(1.0 / (2.0 * gp.alpha * gp.alpha));
+    A.inv_t2 = (float)(1.0 / (gp.tau * gp.tau));
+    A.threshold = (float)gp.threshold;
+    return A;
+}
+
+inline float weight_of(float d, const AnchorSet &A) {
+    return A.gaussian ? std::exp(-d * d * A.inv_2a2) : 1.f - d * d * A.inv_t2;
+}
+
+// W_{i a_r} for every anchor r with a nonzero weight (a_r != i). Appends (r, w) to cols/vals in increasing
+// r; returns how many. The distance loop is branch-free (it vectorises); weights only for the survivors.
+size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
+                  std::vector<int32_t> &cols, std::vector<double> &vals) {
+    const double *p = src + 3 * i, *q = tgt + 3 * i;
+    const float pxi = (float)(p[0] - A.cp[0]), pyi = (float)(p[1] - A.cp[1]), pzi = (float)(p[2] - A.cp[2]);
+    const float qxi = (float)(q[0] - A.cq[0]), qyi = (float)(q[1] - A.cq[1]), qzi = (float)(q[2] - A.cq[2]);
+    const int64_t m = A.m;
+    dist.resize(m);
+    float *dd = dist.data();
+    const float *ax = A.px.data(), *ay = A.py.data(), *az = A.pz.data();
+    const float *bx = A.qx.data(), *by = A.qy.data(), *bz = A.qz.data();
+    for (int64_t r = 0; r < m; ++r) {
+        const float dx = ax[r] - pxi, dy = ay[r] - pyi, dz = az[r] - pzi;
+        const float ex = bx[r] - qxi, ey = by[r] - qyi, ez = bz[r] - qzi;
+        dd[r] = std::fabs(std::sqrt(dx * dx + dy * dy + dz * dz) - std::sqrt(ex * ex + ey * ey + ez * ez));
+    }
+    cols.clear(), vals.clear();
+    const float lim = A.max_d;
+    for (int64_t r = 0; r < m; ++r) {
+        if (dd[r] > lim || A.idx[r] == i) continue;
+        const float w = weight_of(dd[r], A);
+        if (w >= A.threshold) cols.push_back((int32_t)r), vals.push_back((double)w);
+    }
+    return cols.size();
+}
+
+struct RowScratch {
+    std::vector<float> dist;
+    std::vector<int32_t> cols;
+    std::vector<double> vals, u, us;
+};
+
+constexpr int64_t kRowChunk = 256;
+
+}  // namespace
+
+std::vector<double> anchor_degree(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                                  const int64_t *anchors, int64_t m, int nthreads) {
+    check_params(gp);
+    const AnchorSet A = make_anchors(src, tgt, n, anchors, m, gp);
+    std::vector<double> deg(n, 0.0);
+    const int nt = resolve_threads(nthreads, n);
+    std::vector<RowScratch> scratch(std::max(nt, 1));
+    InterruptibleRegion stop;
+    DynamicRange range(0, n, kRowChunk);
+    parallel_region(nt, [&](int tid) {
+        RowScratch &S = scratch[tid];
+        int64_t lo, hi;
+        while (!stop.stopped(tid) && range.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) {
+                anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals);
+                double d = 0.0;
+                for (double w : S.vals) d += w;
+                deg[i] = d;
+            }
+    });
+    stop.throw_if_hit();
+    return deg;
+}
+
+int64_t anchors_within(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                       const int64_t *anchors, int64_t m, int64_t min_anchors, double pair_budget, int nthreads) {
+    check_params(gp);
+    if (m <= min_anchors || !(pair_budget > 0.0)) return m;
+    // prefixes of 2^k draws from min_anchors up (a prefix of i.i.d. draws is itself i.i.d.)
+    std::vector<int64_t> sizes;
+    for (int64_t s = std::max<int64_t>(min_anchors, 2); s < m; s *= 2) sizes.push_back(s);
+    sizes.push_back(m);
+    const size_t K = sizes.size();
+    const AnchorSet A = make_anchors(src, tgt, n, anchors, m, gp);
+    const int nt = resolve_threads(nthreads, n);
+    std::vector<RowScratch> scratch(std::max(nt, 1));
+    std::vector<std::vector<double>> work(std::max(nt, 1), std::vector<double>(K, 0.0));
+    InterruptibleRegion stop;
+    DynamicRange range(0, n, kRowChunk);
+    parallel_region(nt, [&](int tid) {
+        RowScratch &S = scratch[tid];
+        int64_t lo, hi;
+        while (!stop.stopped(tid) && range.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) {
+                anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals);
+                size_t x = 0;
+                for (size_t k = 0; k < K; ++k) {
+                    while (x < S.cols.size() && S.cols[x] < sizes[k]) ++x;
+                    work[tid][k] += 0.5 * (double)x * (double)x;
+                }
+            }
+    });
+    stop.throw_if_hit();
+    int64_t best = sizes[0];
+    for (size_t k = 0; k < K; ++k) {
+        double total = 0.0;
+        for (const auto &w : work) total += w[k];
+        if (total <= pair_budget) best = sizes[k];
+    }
+    return best;
+}
+
+Signals anchor_signals(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
+                       const int64_t *anchors, const double *inv_q, int64_t m, int nthreads) {
+    check_params(gp);
+    if (m < 2) throw std::invalid_argument("the estimate needs at least 2 anchors");
+    const AnchorSet A = make_anchors(src, tgt, n, anchors, m, gp);
+    const int nt = resolve_threads(nthreads, n);
+    // B_rt = W_{a_r a_t}, 0 on the diagonal and between two draws of the same node
+    std::vector<double> B((size_t)m * m, 0.0);
+    {
+        RowScratch S;
+        for (int64_t r = 0; r < m; ++r) {
+            anchor_row(src, tgt, A.idx[r], A, S.dist, S.cols, S.vals);
+            for (size_t x = 0; x < S.cols.size(); ++x)
+                if (A.idx[S.cols[x]] != A.idx[r]) B[(size_t)r * m + S.cols[x]] = S.vals[x];
+        }
+    }
+    const double inv_m = 1.0 / (double)m, inv_mm = 1.0 / ((double)m * (double)(m - 1));
+
+    // Row i's estimates; sa (the anchors' s^, or null in the first pass) adds the terms of t_i.
+    struct RowEstimate {
+        double s, d, e, g;
+    };
+    auto estimate_row = [&](int64_t i, RowScratch &S, const double *sa) -> RowEstimate {
+        const size_t k = anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals);
+        const int32_t *c = S.cols.data();
+        const double *w = S.vals.data();
+        // u_x = W_{i a_x} / q(a_x), us_x = u_x s^(a_x)
+        S.u.resize(k), S.us.resize(k);
+        for (size_t x = 0; x < k; ++x) {
+            S.u[x] = w[x] * inv_q[c[x]];
+            S.us[x] = sa ? S.u[x] * sa[c[x]] : 0.0;
+        }
+        const double *u = S.u.data(), *us = S.us.data();
+        double d = 0.0, T = 0.0, e = 0.0, g = 0.0;
+        for (size_t x = 0; x < k; ++x) {
+            d += u[x] * w[x];
+            e += us[x] * w[x];
+            const double *Brow = B.data() + (size_t)c[x] * m;
+            double Tx = 0.0, Gx = 0.0;
+            for (size_t y = x + 1; y < k; ++y) {
+                const double b = Brow[c[y]];
+                Tx += b * u[y];
+                Gx += b * us[y];
+            }
+            T += 2.0 * u[x] * Tx;  // ordered pairs (r, t) and (t, r)
+            // (r, t) weighs s^(a_r) and (t, r) s^(a_t): u_x u_y b (s_x + s_y) summed over x < y
+            g += us[x] * Tx + u[x] * Gx;
+        }
+        d *= inv_m;
+        return {1.0 + 3.0 * d + T * inv_mm, d, e * inv_m, g * inv_mm};
+    };
+
+    std::vector<RowScratch> scratch(std::max(nt, 1));
+    // pass 1: the anchors' own s^ (they weigh the neighbours' degrees in t_i)
+    std::vector<double> sa(m);
+    for (int64_t r = 0; r < m; ++r) sa[r] = estimate_row(A.idx[r], scratch[0], nullptr).s;
+
+    Signals out;
+    out.degree.assign(n, 0.0), out.highpass.assign(n, 0.0), out.lowpass.assign(n, 0.0);
+    InterruptibleRegion stop;
+    DynamicRange range(0, n, kRowChunk);
+    parallel_region(nt, [&](int tid) {
+        RowScratch &S = scratch[tid];
+        int64_t lo, hi;
+        while (!stop.stopped(tid) && range.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) {
+                const RowEstimate r = estimate_row(i, S, sa.data());
+                const double t = (1.0 + r.d) * r.s + 2.0 * r.e + r.g;
+                out.degree[i] = r.s;
+                out.highpass[i] = r.s * r.s - t;
+                out.lowpass[i] = r.s + t / r.s;
+            }
+    });
+    stop.throw_if_hit();
+    out.n_edges = -1;  // not known: the estimate never builds the graph
+    return out;
+}
+
+}  // namespace fastmac
