@@ -243,9 +243,8 @@ def _save_config(cfg: DictConfig, run_dir: Path) -> None:
     path = run_dir / "config.yaml"
     if cfg.get("resume") and path.exists():
         old = OmegaConf.load(path)
-        keys = (
-            "dataset", "descriptor", "sampler", "backend", "ratio", "samples", "seed", "protocol", "graph", "mac"
-        )  # fmt: skip
+        keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "samples", "seed", "protocol",
+                "graph", "mac")  # fmt: skip
         changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
         if changed:
             log.warning(

@@ -44,7 +44,9 @@ class EstimateParams:
         if not (self.pair_budget >= 0 and self.pair_budget_per_node >= 0):
             raise InputError("sampler.estimate.pair_budget and pair_budget_per_node must be >= 0")
         if not (isinstance(self.pilot_anchors, int) and self.pilot_anchors >= 1):
-            raise InputError(f"sampler.estimate.pilot_anchors must be an integer >= 1, got {self.pilot_anchors!r}")
+            raise InputError(
+                f"sampler.estimate.pilot_anchors must be an integer >= 1, got {self.pilot_anchors!r}"
+            )
         if not (np.isfinite(self.power) and self.power >= 0):
             raise InputError(f"sampler.estimate.power must be finite and >= 0, got {self.power!r}")
         if not (0.0 < self.uniform_mix <= 1.0):
