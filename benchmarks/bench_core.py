@@ -654,6 +654,8 @@ def main(argv: list[str] | None = None) -> int:
         "--products-only", action="store_true", help="only the sampler-graph table of the outdoor pairs"
     )
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--scores-only", action="store_true", help="only the estimated-scores section (issue 29)")
+    ap.add_argument("--max-n", type=int, default=1_000_000, help="largest N of the estimated-scores section")
     args = ap.parse_args(argv)
     sizes = args.sizes or ([1000, 2500, 5000] if args.quick else [1000, 2500, 5000, 10000, 50000])
     ratios = args.ratios or ([1.0, 0.2] if args.quick else [1.0, 0.5, 0.2, 0.05])
@@ -663,6 +665,9 @@ def main(argv: list[str] | None = None) -> int:
         print(cpp.BUILD_HINT.format(why="import failed"))
         return 1
     core = cpp.core()
+    if args.scores_only:
+        bench_scores(args)
+        return 0
     if args.products_only:
         bench_products([(name, corr) for name, corr, _ in outdoor_pairs(args.quick)], args)
         return 0
@@ -787,6 +792,187 @@ def main(argv: list[str] | None = None) -> int:
         args.json.write_text(json.dumps(data, indent=1, default=float))
         print(f"rows written to {args.json}")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# estimated sampler scores (issue 29)
+
+
+def fastmac_once(corr, params, scores: str, ratio: float, family: str, seed: int, samples=None):
+    """(sampling ms, end-to-end ms, result, sample) of FastMAC's high-pass sampler + C++ MAC, one run."""
+    from fastmac_exp.pipeline import register_correspondences
+    from fastmac_exp.samplers import GraphFilterSampler, NoSampler
+
+    sampler = NoSampler() if scores == "none" else GraphFilterSampler(scores=scores)
+    t0 = time.perf_counter()
+    res, s = register_correspondences(
+        corr, params, sampler, CppBackend(), ratio, family, np.random.default_rng(seed),
+        sample_graph=params.graph, samples=samples,
+    )  # fmt: skip
+    total = (time.perf_counter() - t0) * 1e3
+    return s.timings.get("sampling", 0.0), total, res, s
+
+
+def kiss_once(corr, params) -> float | None:
+    try:
+        from fastmac_exp.backends.peers import KissMatcherBackend
+
+        backend = KissMatcherBackend()
+    except Exception:  # noqa: BLE001 - the peer is optional (the dev extra has it)
+        return None
+    t0 = time.perf_counter()
+    try:
+        backend.register(corr, params)
+    except FastMacError:
+        pass
+    return (time.perf_counter() - t0) * 1e3
+
+
+def scores_pairs_table(pairs, reps: int, title: str) -> dict[str, list[float]]:
+    """FastMAC@20 with exact and estimated (auto) scores, MAC@100 and KISS-Matcher, interleaved reps."""
+    from fastmac_exp.params import mac_params_for
+
+    print(
+        f"\n{title}: medians of {reps} interleaved rounds, ms (exact = the scores every earlier "
+        f"core computed)"
+    )
+    print(f"  {'pair':40s} {'auto':>8s} {'samp ex':>8s} {'samp est':>8s} {'F@20 ex':>8s} {'F@20 est':>8s} "
+          f"{'MAC@100':>8s} {'KISS':>8s} {'MAC/F20':>8s} {'KISS/F20':>8s} "
+          f"{'kept inl ex/est':>16s}")  # fmt: skip
+    cols: dict[str, list[float]] = {
+        k: [] for k in ("samp_ex", "samp_est", "f20_ex", "f20_est", "mac", "kiss")
+    }
+    for name, corr, family, sgraph_res in pairs:
+        params = mac_params_for(family, "fpfh")
+        sparams = replace(params, graph=mac_params_for(family, "fpfh", sgraph_res).graph)
+        t = {k: [] for k in cols}
+        kept = {"exact": [], "auto": []}
+        used = ""
+        for r in range(reps):
+            for mode in ("exact", "auto"):
+                ts, tt, _, s = fastmac_once(corr, sparams, mode, 0.2, family, r)
+                key = "ex" if mode == "exact" else "est"
+                t[f"samp_{key}"].append(ts)
+                t[f"f20_{key}"].append(tt)
+                kept[mode].append(corr.labels[s.indices].mean() if corr.labels is not None else np.nan)
+                used = s.scores_used if mode == "auto" else used
+            t["mac"].append(fastmac_once(corr, params, "none", 1.0, family, r)[1])
+            k = kiss_once(corr, params)
+            if k is not None:
+                t["kiss"].append(k)
+        med = {k: (statistics.median(v) if v else float("nan")) for k, v in t.items()}
+        for k in cols:
+            cols[k].append(med[k])
+        print(f"  {name[:40]:40s} {used:>8s} {med['samp_ex']:8.1f} {med['samp_est']:8.1f} "
+            f"{med['f20_ex']:8.1f} "
+              f"{med['f20_est']:8.1f} {med['mac']:8.1f} {med['kiss']:8.1f} "
+              f"{med['mac'] / med['f20_est']:7.1f}x "
+              f"{med['kiss'] / med['f20_est']:7.1f}x "
+              f"{np.mean(kept['exact']):7.3f}/{np.mean(kept['auto']):.3f}")  # fmt: skip
+        sys.stdout.flush()
+    return cols
+
+
+def large_case(n: int, inl: float, ratio: float, samples, scores: str, seed: int = 1):
+    """bench_core's outdoor-like scene at n correspondences: (sampling ms, total ms, RE deg, kept inlier
+    ratio, peak RSS MB, the result)."""
+    from fastmac_exp.params import mac_params_for
+
+    corr, gt = synthetic(n, inlier_ratio=inl, noise=0.1, seed=seed, room=(60.0, 60.0, 4.0))
+    params = mac_params_for("kitti", "fpfh")
+    reset_peak_rss()
+    ts, tt, res, s = fastmac_once(corr, params, scores, ratio, "kitti", 0, samples=samples)
+    re = rotation_error_deg(res.pose[:3, :3], gt[:3, :3])
+    te = float(np.linalg.norm(res.pose[:3, 3] - gt[:3, 3]))
+    ok = re < 5.0 and te < 0.6  # KITTI's success thresholds
+    return ts, tt, re, ok, float(corr.labels[s.indices].mean()), peak_rss_mb(), res
+
+
+def bench_scores(args) -> None:
+    """Issue 29's targets: exact against estimated scores side by side, then 50,000 to 1,000,000."""
+    from fastmac_exp.datasets.user_pairs import SharedRealPairs
+    from fastmac_exp.descriptors.fpfh import FPFHDescriptor
+
+    reps = args.reps or 3
+    print(
+        "Estimated sampler scores (sampler.scores): FastMAC@20 exact vs auto (estimate where auto picks it)"
+    )
+    describe = FPFHDescriptor(max_correspondences=5000)
+    groups: dict[str, list] = {"outdoor": [], "object": [], "indoor": []}
+    if (DATA / "pairs.json").exists():
+        ds = SharedRealPairs(root=str(DATA))
+        for i, name in enumerate(ds.names()):
+            pair = ds.load(i)
+            corr = pair.label(describe(pair, np.random.default_rng(0)))
+            groups[pair.scene].append((name, corr, pair.family, pair.sampler_resolution))
+    else:
+        print(f"  no shared data at {DATA}: the real pairs are skipped")
+    dense = ("kitti00_95_to_94", "kitti00_199_to_198", "lidar_smallgicp_source_to_target")
+    for scene, title in (("outdoor", "Real outdoor pairs, 5,000 FPFH correspondences"),
+                         ("object", "Object pairs (bunny, dragon), 5,000 FPFH correspondences"),
+                         ("indoor", "Real indoor pairs, 5,000 FPFH correspondences")):  # fmt: skip
+        if not groups[scene]:
+            continue
+        cols = scores_pairs_table(groups[scene], reps, title)
+        names = [p[0] for p in groups[scene]]
+        if scene == "outdoor":
+            d = [i for i, nm in enumerate(names) if nm in dense]
+            for i in d:
+                print(f"  target {names[i]}: F@20 {cols['f20_est'][i]:.1f} ms (< 30), sampler "
+                      f"{cols['samp_est'][i]:.1f} ms (< 10), MAC@100 / F@20 "
+                      f"{cols['mac'][i] / cols['f20_est'][i]:.1f}x "
+                      f"(>= 5), KISS / F@20 {cols['kiss'][i] / cols['f20_est'][i]:.1f}x (>= 3)")  # fmt: skip
+            print(
+                f"  target median of the {len(names)} real outdoor pairs: F@20 "
+                f"{statistics.median(cols['f20_est']):.1f} ms (< 20); exact "
+                f"{statistics.median(cols['f20_ex']):.1f}"
+            )
+        if scene == "object":
+            for i, nm in enumerate(names):
+                print(f"  target {nm}: F@20 {cols['f20_est'][i]:.1f} ms <= MAC@100 {cols['mac'][i]:.1f} ms")
+        if scene == "indoor":
+            print(
+                f"  target indoor: MAC@100 median {statistics.median(cols['mac']):.1f} ms, F@20 "
+                f"{statistics.median(cols['f20_est']):.1f} ms (both < 30)"
+            )
+
+    print("\n50,000 outdoor-like correspondences (bench_core's scene), end to end, one run each")
+    for inl in (0.02, 0.05, 0.1):
+        for label, ratio, samples, scores in (("ratio 0.05 auto", 0.05, None, "auto"),
+                                              ("samples=2500 auto", 0.05, 2500, "auto"),
+                                              ("ratio 0.05 exact", 0.05, None, "exact")):  # fmt: skip
+            ts, tt, re, ok, kin, rss, res = large_case(50_000, inl, ratio, samples, scores)
+            print(f"  {100 * inl:4.1f} % inliers, {label:18s}: sampling {ts:7.0f} + MAC "
+                f"{tt - ts:6.0f} = {tt:7.0f} ms "
+                  f"(target < 500), kept inliers {kin:.3f}, RE {re:.2f} deg, {'ok' if ok else 'FAILED'}, "
+                  f"peak RSS {rss:.0f} MB{'; cap ' + res.cap_hit if res.cap_hit else ''}")  # fmt: skip
+            sys.stdout.flush()
+
+    print("\nGrowth: the estimated sampler alone and end to end with samples=5000, 5 % inliers")
+    sizes = [s for s in (10_000, 20_000, 50_000, 100_000, 200_000, 500_000, 1_000_000) if s <= args.max_n]
+    t_s, t_t = [], []
+    for n in sizes:
+        ts, tt, re, ok, kin, rss, res = large_case(n, 0.05, 0.05, 5000, "estimate")
+        t_s.append(ts)
+        t_t.append(tt)
+        print(f"  N {n:9,d}: sampling {ts:8.0f} ms, end to end {tt:8.0f} ms, kept inliers "
+            f"{kin:.3f}, RE {re:.2f} deg "
+              f"{'ok' if ok else 'FAILED'}, peak RSS {rss:.0f} "
+              f"MB{'; cap ' + res.cap_hit if res.cap_hit else ''}")  # fmt: skip
+        sys.stdout.flush()
+    if len(sizes) >= 2:
+        slope_s = np.polyfit(np.log(sizes), np.log(t_s), 1)[0]
+        slope_t = np.polyfit(np.log(sizes), np.log(t_t), 1)[0]
+        print(f"  fitted growth exponent: sampler {slope_s:.2f}, end to end {slope_t:.2f} (goal <= 1.3)")
+    for n, target in ((200_000, 2000), (1_000_000, 10_000)):
+        if n > args.max_n:
+            continue
+        for inl in (0.02, 0.1):
+            ts, tt, re, ok, kin, rss, res = large_case(n, inl, 0.05, 5000, "auto")
+            print(f"  target N {n:,d} at {100 * inl:.0f} % inliers, samples=5000: {tt:.0f} ms (< {target}), "
+                  f"peak RSS {rss:.0f} MB (< 4096), {'registered' if ok else 'FAILED'} (RE {re:.2f} deg)"
+                  + (f"; cap {res.cap_hit}" if res.cap_hit else ""))  # fmt: skip
+            sys.stdout.flush()
 
 
 if __name__ == "__main__":
