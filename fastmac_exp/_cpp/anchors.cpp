@@ -74,23 +74,23 @@ inline float weight_of(float d, const AnchorSet &A) {
 // W_{i a_r} for every anchor r with a nonzero weight (a_r != i). Appends (r, w) to cols/vals in increasing
 // r; returns how many. The distance loop is branch-free (it vectorises); weights only for the survivors.
 size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
-                  std::vector<int32_t> &cols, std::vector<double> &vals) {
+                  std::vector<int32_t> &cols, std::vector<double> &vals, int64_t r0 = 0, int64_t r1 = -1) {
     const double *p = src + 3 * i, *q = tgt + 3 * i;
     const float pxi = (float)(p[0] - A.cp[0]), pyi = (float)(p[1] - A.cp[1]), pzi = (float)(p[2] - A.cp[2]);
     const float qxi = (float)(q[0] - A.cq[0]), qyi = (float)(q[1] - A.cq[1]), qzi = (float)(q[2] - A.cq[2]);
-    const int64_t m = A.m;
+    const int64_t m = r1 < 0 ? A.m : r1;
     dist.resize(m);
     float *dd = dist.data();
     const float *ax = A.px.data(), *ay = A.py.data(), *az = A.pz.data();
     const float *bx = A.qx.data(), *by = A.qy.data(), *bz = A.qz.data();
-    for (int64_t r = 0; r < m; ++r) {
+    for (int64_t r = r0; r < m; ++r) {
         const float dx = ax[r] - pxi, dy = ay[r] - pyi, dz = az[r] - pzi;
         const float ex = bx[r] - qxi, ey = by[r] - qyi, ez = bz[r] - qzi;
         dd[r] = std::fabs(std::sqrt(dx * dx + dy * dy + dz * dz) - std::sqrt(ex * ex + ey * ey + ez * ez));
     }
     cols.clear(), vals.clear();
     const float lim = A.max_d;
-    for (int64_t r = 0; r < m; ++r) {
+    for (int64_t r = r0; r < m; ++r) {
         if (dd[r] > lim || A.idx[r] == i) continue;
         const float w = weight_of(dd[r], A);
         if (w >= A.threshold) cols.push_back((int32_t)r), vals.push_back((double)w);
@@ -136,36 +136,37 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
                        const int64_t *anchors, int64_t m, int64_t min_anchors, double pair_budget, int nthreads) {
     check_params(gp);
     if (m <= min_anchors || !(pair_budget > 0.0)) return m;
-    // prefixes of 2^k draws from min_anchors up (a prefix of i.i.d. draws is itself i.i.d.)
+    // prefixes of 2^k draws from min_anchors up (a prefix of i.i.d. draws is itself i.i.d.), screened one
+    // block at a time, so a dense graph stops after its first few blocks
     std::vector<int64_t> sizes;
     for (int64_t s = std::max<int64_t>(min_anchors, 2); s < m; s *= 2) sizes.push_back(s);
     sizes.push_back(m);
-    const size_t K = sizes.size();
     const AnchorSet A = make_anchors(src, tgt, n, anchors, m, gp);
     const int nt = resolve_threads(nthreads, n);
     std::vector<RowScratch> scratch(std::max(nt, 1));
-    std::vector<std::vector<double>> work(std::max(nt, 1), std::vector<double>(K, 0.0));
-    InterruptibleRegion stop;
-    DynamicRange range(0, n, kRowChunk);
-    parallel_region(nt, [&](int tid) {
-        RowScratch &S = scratch[tid];
-        int64_t lo, hi;
-        while (!stop.stopped(tid) && range.next(lo, hi))
-            for (int64_t i = lo; i < hi; ++i) {
-                anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals);
-                size_t x = 0;
-                for (size_t k = 0; k < K; ++k) {
-                    while (x < S.cols.size() && S.cols[x] < sizes[k]) ++x;
-                    work[tid][k] += 0.5 * (double)x * (double)x;
+    std::vector<int64_t> count(n, 0);  // compatible anchors of each row in the prefix so far
+    int64_t best = sizes[0], prev = 0;
+    for (const int64_t size : sizes) {
+        // x^2 / 2 summed per thread: halves of integers, exact in double, so the total is the same for any
+        // split of the rows among threads
+        std::vector<double> work(std::max(nt, 1), 0.0);
+        InterruptibleRegion stop;
+        DynamicRange range(0, n, kRowChunk);
+        parallel_region(nt, [&](int tid) {
+            RowScratch &S = scratch[tid];
+            int64_t lo, hi;
+            while (!stop.stopped(tid) && range.next(lo, hi))
+                for (int64_t i = lo; i < hi; ++i) {
+                    count[i] += (int64_t)anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals, prev, size);
+                    work[tid] += 0.5 * (double)count[i] * (double)count[i];
                 }
-            }
-    });
-    stop.throw_if_hit();
-    int64_t best = sizes[0];
-    for (size_t k = 0; k < K; ++k) {
+        });
+        stop.throw_if_hit();
         double total = 0.0;
-        for (const auto &w : work) total += w[k];
-        if (total <= pair_budget) best = sizes[k];
+        for (double w : work) total += w;
+        if (total > pair_budget) break;
+        best = size;
+        prev = size;
     }
     return best;
 }

@@ -25,13 +25,20 @@ from fastmac_exp.types import GraphSignals
 class EstimateParams:
     """The estimate's budget: anchors of the signal stage and of the pilot, and the pilot's weighting."""
 
-    anchors: int = 512  # most i.i.d. draws from q; cost N * anchors tests + sum_i (compatible anchors)^2 / 2
+    anchors: int = 2048  # most i.i.d. draws from q; cost N * anchors tests + sum_i (compatible anchors)^2 / 2
     min_anchors: int = 32  # fewest draws, whatever the pair budget
     pair_budget: float = 4e6  # pair work allowed: the longest prefix of 32 * 2^k draws within
     pair_budget_per_node: float = 200.0  # max(pair_budget, this * N)
-    pilot_anchors: int = 256  # uniform pilot nodes (without replacement)
-    power: float = 2.0  # q ~ pilot degree ** power
+    pilot_anchors: int = 1024  # uniform pilot nodes (without replacement)
+    power: float = 1.0  # q ~ pilot degree ** power
     uniform_mix: float = 0.1  # share of q that stays uniform (defensive mixture)
+    max_tests: float = 1.5e9  # node-anchor tests of the three passes: caps pilot and anchors at large N
+
+    def pilot_size(self, n: int) -> int:
+        return int(min(self.pilot_anchors, n, max(128, self.max_tests / (4 * n))))
+
+    def anchor_cap(self, n: int) -> int:
+        return int(min(self.anchors, max(self.min_anchors, self.max_tests / (2 * n))))
 
     def __post_init__(self) -> None:
         if not (isinstance(self.anchors, int) and self.anchors >= 2):
@@ -49,6 +56,8 @@ class EstimateParams:
             )
         if not (np.isfinite(self.power) and self.power >= 0):
             raise InputError(f"sampler.estimate.power must be finite and >= 0, got {self.power!r}")
+        if not (self.max_tests > 0):
+            raise InputError(f"sampler.estimate.max_tests must be positive, got {self.max_tests!r}")
         if not (0.0 < self.uniform_mix <= 1.0):
             raise InputError(f"sampler.estimate.uniform_mix must be in (0, 1], got {self.uniform_mix!r}")
 
@@ -94,9 +103,9 @@ def estimate_signals(
     n = len(src)
     if n < 3:
         raise InputError(f"the estimate needs at least 3 correspondences, got {n}")
-    p = pilot_result if pilot_result is not None else pilot(src, tgt, gp, ep.pilot_anchors, rng)
+    p = pilot_result if pilot_result is not None else pilot(src, tgt, gp, ep.pilot_size(n), rng)
     q = p.proposal(ep)
-    a = rng.choice(n, size=ep.anchors, replace=True, p=q)
+    a = rng.choice(n, size=ep.anchor_cap(n), replace=True, p=q)
     budget = max(ep.pair_budget, ep.pair_budget_per_node * n)
     m = core.anchors_within(src, tgt, gp, a, ep.min_anchors, budget)
     return core.anchor_signals(src, tgt, gp, a[:m], 1.0 / q[a[:m]])
@@ -116,7 +125,7 @@ def predicted_costs(n: int, p: Pilot, ep: EstimateParams) -> tuple[float, float]
     """(exact, estimate) work predicted from the pilot's degrees (units above)."""
     exact = EXACT_PAIR_COST * n * (n - 1) / 2 + EXACT_WEDGE_COST * float(np.sum(p.degree**2))
     budget = max(ep.pair_budget, ep.pair_budget_per_node * n)
-    estimate = ESTIMATE_TEST_COST * n * (ep.pilot_anchors + 2 * ep.anchors) + ESTIMATE_PAIR_COST * budget
+    estimate = ESTIMATE_TEST_COST * n * (ep.pilot_size(n) + 2 * ep.anchor_cap(n)) + ESTIMATE_PAIR_COST * budget
     return exact, estimate
 
 
@@ -128,6 +137,6 @@ def choose_scores(
     n = len(src)
     if n < EXACT_BELOW:
         return "exact", None
-    p = pilot(src, tgt, gp, ep.pilot_anchors, rng)
+    p = pilot(src, tgt, gp, ep.pilot_size(n), rng)
     exact, estimate = predicted_costs(n, p, ep)
     return ("exact" if exact <= estimate else "estimate"), p
