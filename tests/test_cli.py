@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -173,3 +175,23 @@ def test_the_package_finds_its_configs_and_models_without_the_repository_layout(
     p = subprocess.run([sys.executable, "-m", "fastmac_exp", "--help"], capture_output=True, text=True,
                        timeout=120, cwd=tmp_path)  # fmt: skip
     assert p.returncode == 0 and "python run.py sampler=highpass ratio=0.05" in p.stdout
+
+
+def test_samples_keeps_a_count_and_the_row_says_which_scores_ran(tmp_path):
+    import pandas as pd
+
+    p = run("limit=2", "samples=300", "dataset.family=kitti", f"cache.dir={tmp_path / 'cache'}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rows = pd.read_csv(tmp_path / "run" / "results.csv")
+    assert (rows["n_kept"] == 300).all() and (rows["samples"] == 300).all()
+    assert np.allclose(rows["ratio"], 300 / rows["n_in"])
+    assert set(rows["scores"]) <= {"exact", "estimate"}
+    forced = run("limit=1", "samples=300", "sampler.scores=estimate", f"cache.dir={tmp_path / 'cache'}",
+                 tmp=tmp_path / "est")  # fmt: skip
+    assert forced.returncode == 0, forced.stderr[-2000:]
+    row = pd.read_csv(tmp_path / "est" / "run" / "results.csv").iloc[0]
+    assert row["scores"] == "estimate" and row["anchors"] >= 32
+    bad = run("samples=2", tmp=tmp_path / "bad")
+    assert bad.returncode == 2 and "samples must be" in bad.stdout + bad.stderr
+    bad = run("sampler.scores=approx", tmp=tmp_path / "bad2")
+    assert bad.returncode == 2 and "sampler.scores must be one of" in bad.stdout + bad.stderr

@@ -230,3 +230,31 @@ def test_samples_is_a_count_beside_ratio():
     assert len(s.indices) == 400 and s.ratio == 1.0  # at most everything
     s = NoSampler().sample(corr, 0.5, GP, "3dmatch", np.random.default_rng(0), samples=50)
     assert len(s.indices) == 400
+
+
+def test_object_pairs_sample_on_their_own_rescaled_resolution():
+    """Issue 29, item 5: the bunny's sampling graph at 0.006 m linked nearly every pair (1.4 s a pair)."""
+    from fastmac_exp.backends.python_mac import PythonBackend
+    from fastmac_exp.datasets.user_pairs import SharedRealPairs
+    from fastmac_exp.descriptors.oracle import OracleDescriptor
+    from fastmac_exp.families import FIXED_RESOLUTION
+    from fastmac_exp.pipeline import run_pair
+    from fastmac_exp.types import Pair
+
+    rules = SharedRealPairs.rules({"category": "object"})
+    assert rules["sampler_resolution"] == pytest.approx(FIXED_RESOLUTION / 25)
+    assert SharedRealPairs.rules({"category": "indoor"}).get("sampler_resolution", FIXED_RESOLUTION) == (
+        FIXED_RESOLUTION
+    )
+
+    seen = []
+
+    class Spy(RandomSampler):
+        def sample(self, corr, ratio, gp, family, rng, samples=None):
+            seen.append(gp)
+            return super().sample(corr, ratio, gp, family, rng, samples=samples)
+
+    corr, gt = make_correspondences(n=200, inlier_ratio=0.5, noise=0.001, seed=4)
+    pair = Pair(name="obj", gt=gt, correspondences=corr, **{k: v for k, v in rules.items()})
+    run_pair(pair, OracleDescriptor(), Spy(), PythonBackend(), 0.5, np.random.default_rng(0))
+    assert seen[0].alpha == pytest.approx(10 * FIXED_RESOLUTION / 25)  # alpha = 10 res (Gaussian kernel)
