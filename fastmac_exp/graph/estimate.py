@@ -125,7 +125,8 @@ def predicted_costs(n: int, p: Pilot, ep: EstimateParams) -> tuple[float, float]
     """(exact, estimate) work predicted from the pilot's degrees (units above)."""
     exact = EXACT_PAIR_COST * n * (n - 1) / 2 + EXACT_WEDGE_COST * float(np.sum(p.degree**2))
     budget = max(ep.pair_budget, ep.pair_budget_per_node * n)
-    estimate = ESTIMATE_TEST_COST * n * (ep.pilot_size(n) + 2 * ep.anchor_cap(n)) + ESTIMATE_PAIR_COST * budget
+    tests = n * (ep.pilot_size(n) + 2 * ep.anchor_cap(n))
+    estimate = ESTIMATE_TEST_COST * tests + ESTIMATE_PAIR_COST * budget
     return exact, estimate
 
 
