@@ -958,7 +958,8 @@ def bench_scores(args) -> None:
         t_t.append(tt)
         t_1.append(tt1)
         print(
-            f"  N {n:9,d}: sampling {ts:7.0f} ms; samples=5000: end to end {tt:7.0f} ms, kept inliers {kin:.3f}, "
+            f"  N {n:9,d}: sampling {ts:7.0f} ms; samples=5000: end to end {tt:7.0f} ms, "
+            f"kept inliers {kin:.3f}, "
             f"{'ok' if ok else 'FAILED'}{' (cap ' + res.cap_hit + ')' if res.cap_hit else ''}; samples=1000: "
             f"{tt1:6.0f} ms, kept inliers {kin1:.3f}, {'ok' if ok1 else 'FAILED'}; peak RSS {rss:.0f} MB"
         )
