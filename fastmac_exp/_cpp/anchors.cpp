@@ -98,6 +98,51 @@ size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorS
     return cols.size();
 }
 
+// The weight sum and the count of row i's compatible anchors in [r0, r1) (a_r != i), without listing them:
+// the pilot's degree and the budget's counts. Branch-free over the anchors for the quadratic kernel (it
+// vectorises); the Gaussian's exp only for the anchors within the edge distance.
+double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
+                  int64_t r0, int64_t r1, int64_t &count) {
+    const double *p = src + 3 * i, *q = tgt + 3 * i;
+    const float pxi = (float)(p[0] - A.cp[0]), pyi = (float)(p[1] - A.cp[1]), pzi = (float)(p[2] - A.cp[2]);
+    const float qxi = (float)(q[0] - A.cq[0]), qyi = (float)(q[1] - A.cq[1]), qzi = (float)(q[2] - A.cq[2]);
+    dist.resize(r1);
+    float *dd = dist.data();
+    const float *ax = A.px.data(), *ay = A.py.data(), *az = A.pz.data();
+    const float *bx = A.qx.data(), *by = A.qy.data(), *bz = A.qz.data();
+    for (int64_t r = r0; r < r1; ++r) {
+        const float dx = ax[r] - pxi, dy = ay[r] - pyi, dz = az[r] - pzi;
+        const float ex = bx[r] - qxi, ey = by[r] - qyi, ez = bz[r] - qzi;
+        dd[r] = std::fabs(std::sqrt(dx * dx + dy * dy + dz * dz) - std::sqrt(ex * ex + ey * ey + ez * ez));
+    }
+    float sum = 0.f;
+    int64_t cnt = 0;
+    if (!A.gaussian) {
+        const float thr = A.threshold, inv_t2 = A.inv_t2;
+        for (int64_t r = r0; r < r1; ++r) {
+            const float w = 1.f - dd[r] * dd[r] * inv_t2;
+            const bool keep = w >= thr;
+            sum += keep ? w : 0.f;
+            cnt += keep;
+        }
+    } else {
+        const float lim = A.max_d;
+        for (int64_t r = r0; r < r1; ++r) {
+            if (dd[r] > lim) continue;
+            const float w = weight_of(dd[r], A);
+            if (w >= A.threshold) sum += w, ++cnt;
+        }
+    }
+    // the row's own draws (a_r == i) are no anchors of it: take them back out
+    for (int64_t r = r0; r < r1; ++r)
+        if (A.idx[r] == i) {
+            const float w = weight_of(dd[r], A);
+            if (dd[r] <= A.max_d && w >= A.threshold) sum -= w, --cnt;
+        }
+    count = cnt;
+    return (double)sum;
+}
+
 struct RowScratch {
     std::vector<float> dist;
     std::vector<int32_t> cols;
@@ -122,10 +167,8 @@ std::vector<double> anchor_degree(const double *src, const double *tgt, int64_t 
         int64_t lo, hi;
         while (!stop.stopped(tid) && range.next(lo, hi))
             for (int64_t i = lo; i < hi; ++i) {
-                anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals);
-                double d = 0.0;
-                for (double w : S.vals) d += w;
-                deg[i] = d;
+                int64_t cnt = 0;
+                deg[i] = anchor_sum(src, tgt, i, A, S.dist, 0, A.m, cnt);
             }
     });
     stop.throw_if_hit();
@@ -157,7 +200,9 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
             int64_t lo, hi;
             while (!stop.stopped(tid) && range.next(lo, hi))
                 for (int64_t i = lo; i < hi; ++i) {
-                    count[i] += (int64_t)anchor_row(src, tgt, i, A, S.dist, S.cols, S.vals, prev, size);
+                    int64_t cnt = 0;
+                    anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
+                    count[i] += cnt;
                     work[tid] += 0.5 * (double)count[i] * (double)count[i];
                 }
         });
