@@ -71,38 +71,9 @@ inline float weight_of(float d, const AnchorSet &A) {
     return A.gaussian ? std::exp(-d * d * A.inv_2a2) : 1.f - d * d * A.inv_t2;
 }
 
-// W_{i a_r} for every anchor r with a nonzero weight (a_r != i). Appends (r, w) to cols/vals in increasing
-// r; returns how many. The distance loop is branch-free (it vectorises); weights only for the survivors.
-size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
-                  std::vector<int32_t> &cols, std::vector<double> &vals, int64_t r0 = 0, int64_t r1 = -1) {
-    const double *p = src + 3 * i, *q = tgt + 3 * i;
-    const float pxi = (float)(p[0] - A.cp[0]), pyi = (float)(p[1] - A.cp[1]), pzi = (float)(p[2] - A.cp[2]);
-    const float qxi = (float)(q[0] - A.cq[0]), qyi = (float)(q[1] - A.cq[1]), qzi = (float)(q[2] - A.cq[2]);
-    const int64_t m = r1 < 0 ? A.m : r1;
-    dist.resize(m);
-    float *dd = dist.data();
-    const float *ax = A.px.data(), *ay = A.py.data(), *az = A.pz.data();
-    const float *bx = A.qx.data(), *by = A.qy.data(), *bz = A.qz.data();
-    for (int64_t r = r0; r < m; ++r) {
-        const float dx = ax[r] - pxi, dy = ay[r] - pyi, dz = az[r] - pzi;
-        const float ex = bx[r] - qxi, ey = by[r] - qyi, ez = bz[r] - qzi;
-        dd[r] = std::fabs(std::sqrt(dx * dx + dy * dy + dz * dz) - std::sqrt(ex * ex + ey * ey + ez * ez));
-    }
-    cols.clear(), vals.clear();
-    const float lim = A.max_d;
-    for (int64_t r = r0; r < m; ++r) {
-        if (dd[r] > lim || A.idx[r] == i) continue;
-        const float w = weight_of(dd[r], A);
-        if (w >= A.threshold) cols.push_back((int32_t)r), vals.push_back((double)w);
-    }
-    return cols.size();
-}
-
-// The weight sum and the count of row i's compatible anchors in [r0, r1) (a_r != i), without listing them:
-// the pilot's degree and the budget's counts. Branch-free over the anchors for the quadratic kernel (it
-// vectorises); the Gaussian's exp only for the anchors within the edge distance.
-double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
-                  int64_t r0, int64_t r1, int64_t &count) {
+// dist[r] = | |p_i - p_{a_r}| - |q_i - q_{a_r}| | for r in [r0, r1): branch-free, so it vectorises.
+void anchor_distances(const double *src, const double *tgt, int64_t i, const AnchorSet &A,
+                      std::vector<float> &dist, int64_t r0, int64_t r1) {
     const double *p = src + 3 * i, *q = tgt + 3 * i;
     const float pxi = (float)(p[0] - A.cp[0]), pyi = (float)(p[1] - A.cp[1]), pzi = (float)(p[2] - A.cp[2]);
     const float qxi = (float)(q[0] - A.cq[0]), qyi = (float)(q[1] - A.cq[1]), qzi = (float)(q[2] - A.cq[2]);
@@ -115,6 +86,32 @@ double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorS
         const float ex = bx[r] - qxi, ey = by[r] - qyi, ez = bz[r] - qzi;
         dd[r] = std::fabs(std::sqrt(dx * dx + dy * dy + dz * dz) - std::sqrt(ex * ex + ey * ey + ez * ez));
     }
+}
+
+// W_{i a_r} for every anchor r in [r0, r1) with a nonzero weight (a_r != i). Appends (r, w) to cols/vals in
+// increasing r; returns how many. Weights only for the anchors within the edge distance.
+size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
+                  std::vector<int32_t> &cols, std::vector<double> &vals, int64_t r0 = 0, int64_t r1 = -1) {
+    const int64_t m = r1 < 0 ? A.m : r1;
+    anchor_distances(src, tgt, i, A, dist, r0, m);
+    const float *dd = dist.data();
+    cols.clear(), vals.clear();
+    const float lim = A.max_d;
+    for (int64_t r = r0; r < m; ++r) {
+        if (dd[r] > lim || A.idx[r] == i) continue;
+        const float w = weight_of(dd[r], A);
+        if (w >= A.threshold) cols.push_back((int32_t)r), vals.push_back((double)w);
+    }
+    return cols.size();
+}
+
+// The weight sum and the count of row i's compatible anchors in [r0, r1) (a_r != i), without listing them:
+// the pilot's degree and the budget's counts. Branch-free for the quadratic kernel (it vectorises); the
+// Gaussian's exp only for the anchors within the edge distance.
+double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
+                  int64_t r0, int64_t r1, int64_t &count) {
+    anchor_distances(src, tgt, i, A, dist, r0, r1);
+    const float *dd = dist.data();
     float sum = 0.f;
     int64_t cnt = 0;
     if (!A.gaussian) {
@@ -151,6 +148,20 @@ struct RowScratch {
 
 constexpr int64_t kRowChunk = 256;
 
+// body(i, scratch of the thread, tid) for every row, in chunks, Ctrl-C polled between chunks.
+template <class F>
+void for_each_row(int64_t n, int nt, std::vector<RowScratch> &scratch, F &&body) {
+    InterruptibleRegion stop;
+    DynamicRange range(0, n, kRowChunk);
+    parallel_region(nt, [&](int tid) {
+        RowScratch &S = scratch[tid];
+        int64_t lo, hi;
+        while (!stop.stopped(tid) && range.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) body(i, S, tid);
+    });
+    stop.throw_if_hit();
+}
+
 }  // namespace
 
 std::vector<double> anchor_degree(const double *src, const double *tgt, int64_t n, const GraphParams &gp,
@@ -160,18 +171,10 @@ std::vector<double> anchor_degree(const double *src, const double *tgt, int64_t 
     std::vector<double> deg(n, 0.0);
     const int nt = resolve_threads(nthreads, n);
     std::vector<RowScratch> scratch(std::max(nt, 1));
-    InterruptibleRegion stop;
-    DynamicRange range(0, n, kRowChunk);
-    parallel_region(nt, [&](int tid) {
-        RowScratch &S = scratch[tid];
-        int64_t lo, hi;
-        while (!stop.stopped(tid) && range.next(lo, hi))
-            for (int64_t i = lo; i < hi; ++i) {
-                int64_t cnt = 0;
-                deg[i] = anchor_sum(src, tgt, i, A, S.dist, 0, A.m, cnt);
-            }
+    for_each_row(n, nt, scratch, [&](int64_t i, RowScratch &S, int) {
+        int64_t cnt = 0;
+        deg[i] = anchor_sum(src, tgt, i, A, S.dist, 0, A.m, cnt);
     });
-    stop.throw_if_hit();
     return deg;
 }
 
@@ -193,20 +196,12 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
         // x^2 / 2 summed per thread: halves of integers, exact in double, so the total is the same for any
         // split of the rows among threads
         std::vector<double> work(std::max(nt, 1), 0.0);
-        InterruptibleRegion stop;
-        DynamicRange range(0, n, kRowChunk);
-        parallel_region(nt, [&](int tid) {
-            RowScratch &S = scratch[tid];
-            int64_t lo, hi;
-            while (!stop.stopped(tid) && range.next(lo, hi))
-                for (int64_t i = lo; i < hi; ++i) {
-                    int64_t cnt = 0;
-                    anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
-                    count[i] += cnt;
-                    work[tid] += 0.5 * (double)count[i] * (double)count[i];
-                }
+        for_each_row(n, nt, scratch, [&](int64_t i, RowScratch &S, int tid) {
+            int64_t cnt = 0;
+            anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
+            count[i] += cnt;
+            work[tid] += 0.5 * (double)count[i] * (double)count[i];
         });
-        stop.throw_if_hit();
         double total = 0.0;
         for (double w : work) total += w;
         if (total > pair_budget) break;
@@ -275,21 +270,13 @@ Signals anchor_signals(const double *src, const double *tgt, int64_t n, const Gr
 
     Signals out;
     out.degree.assign(n, 0.0), out.highpass.assign(n, 0.0), out.lowpass.assign(n, 0.0);
-    InterruptibleRegion stop;
-    DynamicRange range(0, n, kRowChunk);
-    parallel_region(nt, [&](int tid) {
-        RowScratch &S = scratch[tid];
-        int64_t lo, hi;
-        while (!stop.stopped(tid) && range.next(lo, hi))
-            for (int64_t i = lo; i < hi; ++i) {
-                const RowEstimate r = estimate_row(i, S, sa.data());
-                const double t = (1.0 + r.d) * r.s + 2.0 * r.e + r.g;
-                out.degree[i] = r.s;
-                out.highpass[i] = r.s * r.s - t;
-                out.lowpass[i] = r.s + t / r.s;
-            }
+    for_each_row(n, nt, scratch, [&](int64_t i, RowScratch &S, int) {
+        const RowEstimate r = estimate_row(i, S, sa.data());
+        const double t = (1.0 + r.d) * r.s + 2.0 * r.e + r.g;
+        out.degree[i] = r.s;
+        out.highpass[i] = r.s * r.s - t;
+        out.lowpass[i] = r.s + t / r.s;
     });
-    stop.throw_if_hit();
     out.n_edges = -1;  // not known: the estimate never builds the graph
     return out;
 }
