@@ -146,7 +146,7 @@ struct RowScratch {
     std::vector<double> vals, u, us;
 };
 
-constexpr int64_t kRowChunk = 256;
+constexpr int64_t kRowChunk = 64;  // rows between two Ctrl-C polls
 
 // body(i, scratch of the thread, tid) for every row, in chunks, Ctrl-C polled between chunks.
 template <class F>
@@ -266,7 +266,8 @@ Signals anchor_signals(const double *src, const double *tgt, int64_t n, const Gr
     std::vector<RowScratch> scratch(std::max(nt, 1));
     // pass 1: the anchors' own s^ (they weigh the neighbours' degrees in t_i)
     std::vector<double> sa(m);
-    for (int64_t r = 0; r < m; ++r) sa[r] = estimate_row(A.idx[r], scratch[0], nullptr).s;
+    for_each_row(m, nt, scratch,
+                 [&](int64_t r, RowScratch &S, int) { sa[r] = estimate_row(A.idx[r], S, nullptr).s; });
 
     Signals out;
     out.degree.assign(n, 0.0), out.highpass.assign(n, 0.0), out.lowpass.assign(n, 0.0);
