@@ -66,8 +66,9 @@ class EstimateParams:
 class Pilot:
     """The pilot stage: uniform anchors and every node's first-order degree estimate (scaled to N)."""
 
-    anchors: np.ndarray
+    anchors: np.ndarray  # the pilot's nodes in draw order; the first `used` were tested
     degree: np.ndarray  # ~ sum_{j != i} W_ij
+    used: int = 0
 
     def proposal(self, ep: EstimateParams) -> np.ndarray:
         """q: the anchors' sampling law (sums to 1, positive everywhere)."""
@@ -85,18 +86,42 @@ PILOT_BLOCK = 256
 DENSE_PILOT = 0.02
 
 
-def pilot(src: np.ndarray, tgt: np.ndarray, gp: GraphParams, m0: int, rng: np.random.Generator) -> Pilot:
+def pilot(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    gp: GraphParams,
+    m0: int,
+    rng: np.random.Generator,
+    first_block: bool = False,
+) -> Pilot:
+    """The pilot's degrees from a uniform sample of up to m0 nodes. It stops after its first block of
+    PILOT_BLOCK where the graph is dense, or always with first_block (auto's choice needs no more; the
+    estimate then extends it with `extend`)."""
     from fastmac_exp import core
 
     n = len(src)
     m0 = min(m0, n)
-    a0 = rng.choice(n, size=m0, replace=False)  # a uniformly random order: any prefix is a uniform sample
+    order = rng.choice(n, size=m0, replace=False)  # a uniformly random order: any prefix is a uniform sample
     used = min(PILOT_BLOCK, m0)
-    d = core.anchor_degree(src, tgt, gp, np.sort(a0[:used]))
-    if used < m0 and d.mean() / used < DENSE_PILOT:
-        d = d + core.anchor_degree(src, tgt, gp, np.sort(a0[used:]))
-        used = m0
-    return Pilot(anchors=np.sort(a0[:used]), degree=d * ((n - 1) / max(used, 1)))
+    p = Pilot(
+        anchors=order, degree=core.anchor_degree(src, tgt, gp, np.sort(order[:used])) * ((n - 1) / used)
+    )
+    p.used = used
+    return p if first_block else extend(src, tgt, gp, p)
+
+
+def extend(src: np.ndarray, tgt: np.ndarray, gp: GraphParams, p: Pilot) -> Pilot:
+    """The pilot's remaining nodes, unless its first block found the graph dense."""
+    from fastmac_exp import core
+
+    n, used, m0 = len(src), p.used, len(p.anchors)
+    if used >= m0 or p.degree.mean() / (n - 1) >= DENSE_PILOT:
+        return p
+    rest = core.anchor_degree(src, tgt, gp, np.sort(p.anchors[used:]))
+    degree = (p.degree * (used / (n - 1)) + rest) * ((n - 1) / m0)
+    out = Pilot(anchors=p.anchors, degree=degree)
+    out.used = m0
+    return out
 
 
 def estimate_signals(
@@ -113,7 +138,11 @@ def estimate_signals(
     n = len(src)
     if n < 3:
         raise InputError(f"the estimate needs at least 3 correspondences, got {n}")
-    p = pilot_result if pilot_result is not None else pilot(src, tgt, gp, ep.pilot_size(n), rng)
+    p = (
+        extend(src, tgt, gp, pilot_result)
+        if pilot_result is not None
+        else pilot(src, tgt, gp, ep.pilot_size(n), rng)
+    )
     q = p.proposal(ep)
     a = rng.choice(n, size=ep.anchor_cap(n), replace=True, p=q)
     budget = max(ep.pair_budget, ep.pair_budget_per_node * n)
@@ -148,6 +177,6 @@ def choose_scores(
     n = len(src)
     if n < EXACT_BELOW:
         return "exact", None
-    p = pilot(src, tgt, gp, ep.pilot_size(n), rng)
+    p = pilot(src, tgt, gp, ep.pilot_size(n), rng, first_block=True)
     exact, estimate = predicted_costs(n, p, ep)
     return ("exact" if exact <= estimate else "estimate"), p
