@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import signal
+import sys
 import traceback
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -18,12 +20,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
 from fastmac_exp.cache import CorrespondenceCache
+from fastmac_exp.checks import check_run_keys
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
-from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
+from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.resources import find_file
 from fastmac_exp.results import ResultsLog
+from fastmac_exp.resume import CONFIG_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
+from fastmac_exp.runlock import RunLock
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +122,27 @@ _WORKER: Components | None = None
 
 def _init_worker(cfg_yaml: str) -> None:
     global _WORKER
+    # The main process handles Ctrl-C (sent to the whole process group) and SIGTERM, and ends the workers;
+    # a worker whose main process dies however it dies (SIGKILL) gets SIGTERM from the kernel.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent()
     _WORKER = Components(OmegaConf.create(cfg_yaml))
+
+
+def _die_with_parent() -> None:
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM))
+
+
+def _end_workers(pool: ProcessPoolExecutor) -> None:
+    """Stop the workers now (an interrupt or an error): running pairs are abandoned, not waited for."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # terminate_workers() in 3.14
+        proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _work(args: tuple[int, str]) -> PairOutcome:
@@ -139,28 +164,36 @@ def run_experiment(
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Run every (remaining) pair, write results.{jsonl,csv,parquet}, summary.json and config.yaml."""
     cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
-    if cfg.protocol not in PROTOCOLS:
-        raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.protocol!r}")
-    ratio = cfg.get("ratio")
-    if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
-        raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
+    check_run_keys(cfg)
     resume = cfg.get("resume")
     # resume=auto: continue this run's own directory if it holds results (sweep members, whose directories
     # Hydra names; `resume` is left out of their names), else start it
-    auto = resume is True or (isinstance(resume, str) and resume.lower() == "auto")
+    auto = is_auto(resume)
     run_dir = Path(run_dir) if auto or not resume else Path(resume)
-    if resume and not auto and not run_dir.is_dir():
-        raise InputError(f"resume={resume}: no such run directory")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    _save_config(cfg, run_dir)
-
-    comp = Components(cfg)
+    if resume and not auto:
+        check_is_run(run_dir, resume)
+    comp = Components(cfg)  # every group's options, before anything is written
     names = comp.names()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    lock = RunLock(run_dir).acquire()
+    try:
+        return _run_locked(cfg, run_dir, comp, names)
+    finally:
+        lock.release()
+
+
+def _run_locked(
+    cfg: DictConfig, run_dir: Path, comp: Components, names: list[str]
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    resume = cfg.get("resume")
     if not resume and (run_dir / "results.jsonl").exists():
         raise InputError(
             f"{run_dir} already holds results; pass resume={run_dir} (resume=auto in a sweep) to continue "
             "that run, or choose a new run directory"
         )
+    if resume and (run_dir / CONFIG_NAME).is_file():
+        check_same_experiment(run_dir, cfg)
+    _save_config(cfg, run_dir)
     results = ResultsLog(run_dir)
     done = results.done()
     todo = [(i, n) for i, n in enumerate(names) if n not in done]
@@ -172,7 +205,10 @@ def run_experiment(
     for t in trackers:
         t.start(plain_cfg, run_dir, names)
 
-    workers = int(cfg.get("workers", 1) or 1)
+    workers = int(cfg.get("workers", 1))
+    if workers > 1 and len(todo) < workers:
+        log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
+        workers = max(len(todo), 1)
     bar = _progress(len(todo), bool(cfg.get("progress", True)))
     n_ok = n_done = 0
     t_sum = 0.0
@@ -198,17 +234,29 @@ def run_experiment(
                 consume(process_pair(comp, i, n))
         else:
             cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
-            with ProcessPoolExecutor(
-                max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,)
-            ) as pool:
+            pool = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,))
+            try:
                 for out in pool.map(_work, todo):
                     consume(out)
+            except BaseException:
+                _end_workers(pool)
+                raise
+            pool.shutdown()
     except KeyboardInterrupt:
         interrupted = True
-        log.warning("interrupted: %d pairs are saved in %s; rerun with resume=%s", n_done, run_dir, run_dir)
+        if results.rows:
+            log.warning(
+                "interrupted: %d pairs are saved in %s; rerun with resume=%s",
+                len(results.rows),
+                run_dir,
+                run_dir,
+            )
+        else:
+            log.warning("interrupted before the first pair finished: nothing to resume")
     finally:
         bar.close()
-        table = results.write_tables()
+        keep = bool(results.rows) or not interrupted  # an interrupted start-up leaves no tables of nothing
+        table = results.write_tables() if keep else results.table()
         summary = summarize(table)
         summary["failures"] = failure_reasons(table)
         summary.update(
@@ -224,27 +272,23 @@ def run_experiment(
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,
         )
-        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        if keep:
+            (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         for t in trackers:
             try:
                 t.finish(table, summary)
             except Exception as exc:  # noqa: BLE001
                 log.warning("tracker %s failed to finish: %s", t.name, exc)
     if interrupted:
-        raise KeyboardInterrupt
+        exc = KeyboardInterrupt("run interrupted; its finished pairs are saved")
+        exc.saved = True  # type: ignore[attr-defined] - the console has said what was saved
+        raise exc
     return table, summary
 
 
 def _save_config(cfg: DictConfig, run_dir: Path) -> None:
-    path = run_dir / "config.yaml"
+    path = run_dir / CONFIG_NAME
     if cfg.get("resume") and path.exists():
-        old = OmegaConf.load(path)
-        keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "seed", "protocol", "graph", "mac")
-        changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
-        if changed:
-            log.warning(
-                "resume: config differs from the saved run in %s; continuing with the new one", changed
-            )
         path = run_dir / "config.resumed.yaml"
     OmegaConf.save(cfg, path, resolve=False)
 
