@@ -26,7 +26,7 @@ from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.resources import find_file
 from fastmac_exp.results import ResultsLog
-from fastmac_exp.resume import CONFIG_NAME, check_is_run, check_same_experiment, is_auto
+from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
 from fastmac_exp.runlock import RunLock
 
@@ -66,6 +66,9 @@ class Components:
             if int(self.limit) < 1:
                 raise InputError(f"limit must be >= 1 (null = every pair), got {self.limit}")
             names = names[: int(self.limit)]
+        check_inputs = getattr(self.dataset, "check_inputs", None)  # files a config names, up front
+        if check_inputs is not None:
+            check_inputs()
         return names
 
 
@@ -289,7 +292,7 @@ def _run_locked(
 def _save_config(cfg: DictConfig, run_dir: Path) -> None:
     path = run_dir / CONFIG_NAME
     if cfg.get("resume") and path.exists():
-        path = run_dir / "config.resumed.yaml"
+        path = run_dir / RESUMED_NAME
     OmegaConf.save(cfg, path, resolve=False)
 
 

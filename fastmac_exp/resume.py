@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from fastmac_exp.errors import InputError
 
 CONFIG_NAME = "config.yaml"
+RESUMED_NAME = "config.resumed.yaml"  # the latest resume's config (its limit may have grown)
 # keys (and key prefixes) that cannot change a row
 FREE = ("workers", "progress", "tracker", "fail_fast", "resume", "cache", "dataset.cache_dir")
 ABSENT = "<absent>"
@@ -55,7 +56,8 @@ def differences(saved: DictConfig, cfg: DictConfig) -> list[tuple[str, Any, Any]
 
 def check_same_experiment(run_dir: Path, cfg: DictConfig) -> None:
     """Refuse (InputError) to resume `run_dir` with a config that would add rows of another experiment."""
-    diff = differences(OmegaConf.load(run_dir / CONFIG_NAME), cfg)
+    latest = run_dir / RESUMED_NAME if (run_dir / RESUMED_NAME).is_file() else run_dir / CONFIG_NAME
+    diff = differences(OmegaConf.load(latest), cfg)
     if not diff:
         return
     lines = "\n".join(
@@ -65,7 +67,7 @@ def check_same_experiment(run_dir: Path, cfg: DictConfig) -> None:
     )
     raise InputError(
         f"resume={run_dir}: that run is another experiment; these keys differ:\n{lines}\n"
-        f"resume with the saved run's overrides (see {run_dir / CONFIG_NAME}), or drop resume= to start a "
+        f"resume with the saved run's overrides (see {latest}), or drop resume= to start a "
         "new run"
     )
 

@@ -19,12 +19,38 @@ def run(*overrides: str, tmp: Path) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
 
 
+def _not_clouds(tmp: Path, *names: str) -> list[Path]:
+    """Files that exist (so the run starts) but fail when a pair reads them."""
+    paths = [tmp / n for n in names]
+    for p in paths:
+        p.write_text("not a point cloud\n")
+    return paths
+
+
 def test_every_pair_failed_exits_non_zero_and_says_why(tmp_path):
-    p = run("dataset=pairs", "dataset.source=nosuch_a.ply", "dataset.target=nosuch_b.ply", tmp=tmp_path)
+    a, b = _not_clouds(tmp_path, "a.xyz", "b.xyz")
+    p = run("dataset=pairs", f"dataset.source={a}", f"dataset.target={b}", tmp=tmp_path)
     assert p.returncode == 1, p.stderr[-2000:]
     out = p.stdout + p.stderr
-    assert "failed x1: InputError: point cloud file not found: nosuch_a.ply" in out
+    assert f"failed x1: InputError: {a}, line 1: 'not' is not a number" in out
     assert "every pair failed" in out
+
+
+def test_a_missing_input_file_is_refused_before_the_run_starts(tmp_path):
+    """A missing file is a config error (exit 2, its absolute path, no run directory), not a failed pair."""
+    (b,) = _not_clouds(tmp_path, "b.xyz")
+    p = run("dataset=pairs", "dataset.source=nosuch_a.ply", f"dataset.target={b}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert f"dataset.source: no such file: {REPO / 'nosuch_a.ply'}" in out
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_unknown_option_value_is_refused_before_the_run_starts(tmp_path):
+    p = run("mac.search=bnbb", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "mac.search must be one of auto, bnb, enumerate, got 'bnbb'" in out
+    assert not (tmp_path / "run").exists()
 
 
 def test_config_value_errors_exit_2_with_our_message(tmp_path):
@@ -46,23 +72,34 @@ def sweep(*overrides: str, sweep_dir: Path) -> subprocess.CompletedProcess:
 
 
 def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_auto(tmp_path):
-    """A sweep member in which every pair fails (here: missing files) is a measurement, not the end of the
-    sweep; rerunning the same sweep into the same directory needs resume=auto and keeps every row once."""
+    """A sweep member in which every pair fails (here: files that are no clouds) is a measurement, not the
+    end of the sweep; rerunning the same sweep into the same directory needs resume=auto and keeps every
+    row once."""
     import pandas as pd
 
-    args = ("dataset=pairs", "dataset.source=nosuch_a.ply,nosuch_b.ply", "dataset.target=nosuch_c.ply")
-    first = sweep(*args, sweep_dir=tmp_path)
+    (tmp_path / "in").mkdir()
+    a, b, c = _not_clouds(tmp_path / "in", "a.xyz", "b.xyz", "c.xyz")
+    # absolute paths in the members' names would make directories of their slashes: number them instead
+    args = (
+        "dataset=pairs",
+        f"dataset.source={a},{b}",
+        f"dataset.target={c}",
+        "hydra.sweep.subdir=${hydra.job.num}",
+    )
+    first = sweep(*args, sweep_dir=tmp_path / "sweep")
     assert first.returncode == 0, first.stderr[-2000:]
-    members = sorted(p.parent for p in tmp_path.glob("*/results.jsonl"))
+    members = sorted(p.parent for p in (tmp_path / "sweep").glob("*/results.jsonl"))
     assert len(members) == 2  # the second member ran after the first one failed on every pair
-    again = sweep(*args, sweep_dir=tmp_path)
+    again = sweep(*args, sweep_dir=tmp_path / "sweep")
     assert again.returncode != 0 and "already holds results" in again.stdout + again.stderr
-    resumed = sweep(*args, "resume=auto", sweep_dir=tmp_path)
+    resumed = sweep(*args, "resume=auto", sweep_dir=tmp_path / "sweep")
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    assert sorted(p.parent for p in tmp_path.glob("*/results.jsonl")) == members  # no new directories
+    assert (
+        sorted(p.parent for p in (tmp_path / "sweep").glob("*/results.jsonl")) == members
+    )  # no new directories
     for m in members:
         rows = pd.read_csv(m / "results.csv")
-        assert len(rows) == 1 and rows["error"].str.contains("point cloud file not found").all()
+        assert len(rows) == 1 and rows["error"].str.contains("is not a number").all()
 
 
 def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
