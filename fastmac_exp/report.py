@@ -208,6 +208,7 @@ def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: in
         return []
     try:
         from fastmac_exp.trackers.rerun_snapshot import snapshot_recording
+        from fastmac_exp.trackers.rerun_tracker import recording_parts
     except ImportError as exc:  # rerun-sdk missing: tables and plots still come
         log.warning("no pair snapshots: %s", exc)
         return []
@@ -217,7 +218,7 @@ def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: in
         rows = table[table["run"] == run]
         titles = {str(r["pair"]): _pair_title(r) for _, r in rows.iterrows()}
         sub = out_dir / "pairs" if run == "." else out_dir / "pairs" / run
-        for rrd in [run_dir / "recording.rrd", *sorted((run_dir / "rerun").glob("*.rrd"))]:
+        for rrd in [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]:
             if len(written) >= max_pairs or not rrd.is_file():
                 continue
             try:

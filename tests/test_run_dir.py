@@ -159,3 +159,29 @@ def test_ctrl_c_before_the_first_pair_leaves_no_run_directory(tmp_path):
     assert proc.returncode == 130, out[-2000:]
     assert "Traceback" not in out and ("nothing to resume" in out or "nothing was written" in out)
     assert not run_dir.exists()
+
+
+def test_resume_keeps_the_earlier_recording_and_wandb_run_and_the_report_reads_every_part(tmp_path):
+    from fastmac_exp.trackers.wandb_tracker import find_offline_runs, read_offline_run
+
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "run.py", "progress=false", f"hydra.run.dir={run_dir}"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    first = subprocess.run([*cmd, "limit=1"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr[-2000:]
+    recording = (run_dir / "recording.rrd").read_bytes()
+    again = subprocess.run([*cmd, "limit=2", f"resume={run_dir}"], cwd=REPO, env=env, capture_output=True,
+                           text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (run_dir / "recording.rrd").read_bytes() == recording  # the first part, untouched
+    assert (run_dir / "recording.part2.rrd").is_file()
+    runs = find_offline_runs(run_dir)
+    assert len(runs) == 2
+    parts = [read_offline_run(r) for r in runs]
+    assert [[h["pair/index"] for h in p["history"] if "pair/index" in h] for p in parts] == [[0], [1]]
+    assert parts[1]["run"]["name"].endswith("(part 2)")
+    report = subprocess.run([sys.executable, "-m", "fastmac_exp.report", str(run_dir)], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert report.returncode == 0, report.stderr[-2000:]
+    pngs = sorted(p.name for p in (run_dir / "report" / "pairs").glob("*.png"))
+    assert pngs == ["3dmatch_000.png", "3dmatch_001.png"]

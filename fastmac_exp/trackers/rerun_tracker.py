@@ -1,7 +1,9 @@
 """Rerun tracker: the pairs of a run as a Rerun recording (.rrd), for `rerun <file>.rrd`.
 
-per="run": one file, `<run_dir>/recording.rrd` (or `path`); per="pair": one file per recorded pair,
-`<run_dir>/rerun/<pair>.rrd` (or under the directory `path`). Nothing is spawned or served; data goes
+per="run": one file, `<run_dir>/recording.rrd` (or `path`), and one more for each resume of the run
+(`recording.part2.rrd`, ...: the earlier parts are never rewritten; `rerun <run_dir>/recording*.rrd`
+opens them all); per="pair": one file per recorded pair, `<run_dir>/rerun/<pair>.rrd` (or under the
+directory `path`). Nothing is spawned or served; data goes
 straight to the file through a private `rr.RecordingStream`.
 
 Entity layout (pair names are escaped with `rr.escape_entity_path_part`). A pair's geometry is static (it
@@ -222,7 +224,10 @@ class RerunTracker(Tracker):
         if self.per == "run":
             target = Path(self.path) if self.path else Path("recording.rrd")
             target = target if target.is_absolute() else self._run_dir / target
-            self.rec = self._open(target, recording_name=self._run_dir.name)
+            parts = recording_parts(target)
+            name = self._run_dir.name + (f" (part {len(parts) + 1})" if parts else "")
+            target = part_path(target, len(parts) + 1)
+            self.rec = self._open(target, recording_name=name)
             log.info("rerun: recording to %s (view with `rerun %s`)", target, target)
 
     def _open(self, path: Path, recording_name: str):
@@ -448,6 +453,20 @@ class RerunTracker(Tracker):
         if self.rec is not None:
             rec, self.rec = self.rec, None
             self._close(rec, self.recorded)
+
+
+def part_path(path: Path, part: int) -> Path:
+    """The file of a recording's `part` (1: `path` itself; a resumed run records into `<stem>.partN.rrd`
+    beside the earlier parts, which stay as they are)."""
+    return path if part == 1 else path.with_name(f"{path.stem}.part{part}{path.suffix}")
+
+
+def recording_parts(path: str | Path) -> list[Path]:
+    """The existing files of a recording and of its resumed parts, in the order they were written."""
+    path, out = Path(path), []
+    while (p := part_path(path, len(out) + 1)).is_file():
+        out.append(p)
+    return out
 
 
 def scale_of(points: np.ndarray) -> float:
