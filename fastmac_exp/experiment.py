@@ -25,7 +25,7 @@ from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.resources import find_file
-from fastmac_exp.results import ResultsLog
+from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
 from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
 from fastmac_exp.runlock import RunLock
@@ -220,6 +220,8 @@ def _run_locked(
     def consume(out: PairOutcome) -> None:
         nonlocal n_ok, n_done, t_sum
         results.append(out.row)
+        if out.row.get("success") is None and not out.row.get("error") and out.row.get("pose"):
+            write_pose(run_dir, out.row)  # no GT: the estimate is the result
         for t in trackers:
             try:
                 t.log_pair(out)
@@ -262,6 +264,7 @@ def _run_locked(
         table = results.write_tables() if keep else results.table()
         summary = summarize(table)
         summary["failures"] = failure_reasons(table)
+        summary["unscored_pairs"] = unscored_pairs(table, run_dir)
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
@@ -327,6 +330,21 @@ def failure_reasons(table: pd.DataFrame) -> dict[str, dict[str, Any]]:
     }
 
 
+def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[dict[str, Any]]:
+    """The pairs registered without GT: their pose, its file and what a user can trust it by."""
+    rows = table[table["success"].isna() & table["error"].eq("") & table["pose"].notna()]
+    return [
+        {"pair": str(r["pair"]), "pose": pose_matrix(r["pose"]).tolist(),
+         "pose_file": str(pose_file(run_dir, str(r["pair"]))), "clique_size": _int(r.get("clique_size")),
+         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in"))}
+        for _, r in rows.head(most).iterrows()
+    ]  # fmt: skip
+
+
+def _int(v: Any) -> int | None:
+    return None if v is None or pd.isna(v) else int(v)
+
+
 def _stage_label(stage: str, summary: dict[str, Any]) -> str:
     cached = int(summary.get("describe_cached") or 0)
     if stage != "describe" or not cached:
@@ -340,16 +358,32 @@ def format_summary(summary: dict[str, Any]) -> str:
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
     s = summary
     nan = float("nan")
+    scored, unscored = s.get("scored", s.get("pairs")), s.get("unscored", 0)
+    if scored:
+        rr = f"RR: {100 * s.get('RR', nan):.1f}%" + (f" (of the {scored} pairs with GT)" if unscored else "")
+    else:
+        rr = "RR: no ground truth: not scored"
     lines = [
         f"dataset={s.get('dataset')} descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
         f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
-        f"pairs: {s.get('pairs')}  registered: {s.get('registered', 0)}  failed: {s.get('failed', 0)}",
-        f"RR: {100 * s.get('RR', nan):.1f}%   RE: {s.get('RE_deg', nan):.2f} deg   "
-        f"TE: {s.get('TE_cm', nan):.2f} cm   "
+        "  ".join(
+            [f"pairs: {s.get('pairs')}"]
+            + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
+            + ([f"no ground truth (not scored): {unscored}"] if unscored else [])
+            + [f"failed with an error: {s.get('failed', 0)}"]
+        ),
+        f"{rr}   RE: {s.get('RE_deg', nan):.2f} deg   TE: {s.get('TE_cm', nan):.2f} cm   "
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
         "median ms: "
         + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
+    for u in (s.get("unscored_pairs") or [])[:3]:
+        lines.append(
+            f"{u['pair']}: no ground truth: not scored; clique of {u['clique_size']}, {u['pose_inliers']} of "
+            f"{u['n_in']} correspondences within the inlier threshold; estimated pose (source -> target, "
+            f"{u['pose_file']}):"
+        )
+        lines += ["  " + " ".join(f"{v:12.6f}" for v in row) for row in u["pose"]]
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
         lines.append(f"failed x{info['count']}: {reason} ({pairs})")

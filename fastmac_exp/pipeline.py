@@ -91,6 +91,7 @@ def run_pair(
         inlier_ratio_kept=float(kept_labels.mean()) if kept_labels is not None else np.nan,
         clique_size=len(result.clique),
         clique_inliers=int(corr.labels[result.clique].sum()) if corr.labels is not None else None,
+        pose_inliers=pose_inliers(corr, result.pose, params.inlier_threshold),
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -106,6 +107,12 @@ def run_pair(
     row.timings = {"describe": describe_ms, **result.timings}
     row.pose = " ".join(f"{v:.9g}" for v in result.pose.ravel())
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
+
+
+def pose_inliers(corr: Correspondences, pose: np.ndarray, threshold: float) -> int:
+    """How many correspondences the pose maps to within `threshold` of their target point."""
+    residual = np.linalg.norm(corr.src @ pose[:3, :3].T + pose[:3, 3] - corr.tgt, axis=1)
+    return int((residual < threshold).sum())
 
 
 def describe(

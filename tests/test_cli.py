@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -210,3 +212,41 @@ def test_the_package_finds_its_configs_and_models_without_the_repository_layout(
     p = subprocess.run([sys.executable, "-m", "fastmac_exp", "--help"], capture_output=True, text=True,
                        timeout=120, cwd=tmp_path)  # fmt: skip
     assert p.returncode == 0 and "python run.py sampler=highpass ratio=0.05" in p.stdout
+
+
+def _blob_pair(tmp: Path) -> tuple[Path, Path, np.ndarray]:
+    """A bumpy closed surface (FPFH finds matches on it) and the same surface under a known pose."""
+    from fastmac_exp.transforms import random_rotation
+
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0, 2 * np.pi, 8000), rng.uniform(0, np.pi, 8000)
+    r = 1.5 + 0.3 * np.sin(3 * u) * np.sin(2 * v)
+    pts = np.stack([r * np.cos(u) * np.sin(v), r * np.sin(u) * np.sin(v), r * np.cos(v)], 1)
+    gt = np.eye(4)
+    gt[:3, :3], gt[:3, 3] = random_rotation(rng), [0.3, -0.2, 0.1]
+    np.save(tmp / "src.npy", pts)
+    np.save(tmp / "tgt.npy", pts @ gt[:3, :3].T + gt[:3, 3])
+    return tmp / "src.npy", tmp / "tgt.npy", gt
+
+
+def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path):
+    """No GT: not a failure; the summary prints the estimated pose with its confidence and writes it as a
+    4x4 file that dataset.gt reads back (the pair then registers against it exactly)."""
+    from fastmac_exp.io import read_matrix
+    from fastmac_exp.metrics import pose_errors
+
+    src, tgt, gt = _blob_pair(tmp_path)
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = p.stdout
+    assert "pairs: 1  no ground truth (not scored): 1  failed with an error: 0" in out
+    assert "RR: no ground truth: not scored" in out and "RR: 0.0%" not in out
+    pose_path = tmp_path / "run" / "poses" / "src+tgt.txt"
+    assert "src+tgt: no ground truth: not scored; clique of " in out
+    assert f"source -> target, {pose_path}):" in out
+    pose = read_matrix(pose_path)
+    assert pose_errors(pose, gt, 5.0, 0.1).success  # the estimate is the right one
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", f"dataset.gt={pose_path}",
+            tmp=tmp_path / "again")  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "pairs: 1  registered: 1 of 1  failed with an error: 0" in p.stdout
