@@ -12,6 +12,7 @@ from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
+from fastmac_exp.offset import describe_moved
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.resolution import resolution_for
@@ -72,7 +73,7 @@ def register(
             descriptor = FPFHDescriptor()
         graph_key = descriptor.graph_key
         t0 = time.perf_counter()
-        corr = descriptor(pair, rng)
+        corr = describe_moved(descriptor, pair, rng)
         describe_ms = (time.perf_counter() - t0) * 1e3
     params = mac_params_for(family, graph_key, resolution, mac_overrides=mac_overrides)
     sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, mac_overrides=mac_overrides).graph

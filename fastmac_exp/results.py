@@ -95,7 +95,7 @@ def pose_file(run_dir: Path, pair: str) -> Path:
 def write_pose(run_dir: Path, row: dict[str, Any]) -> Path:
     path = pose_file(run_dir, str(row["pair"]))
     path.parent.mkdir(exist_ok=True)
-    np.savetxt(path, pose_matrix(row["pose"]), fmt="%.9g")
+    np.savetxt(path, pose_matrix(row["pose"]), fmt="%.17g")
     return path
 
 
