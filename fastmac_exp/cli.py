@@ -66,6 +66,15 @@ def check_launcher(argv: list[str]) -> str | None:
 
 # The ratio in a run directory's name: the one used (sampler=none keeps everything).
 OmegaConf.register_new_resolver("run_ratio", ratio_used, replace=True)
+
+
+def run_dataset(choice: str, family: str | None) -> str:
+    """The dataset in a run directory's name, with its family where the name does not say it."""
+    return f"{choice}-{family}" if family and family != choice else choice
+
+
+OmegaConf.register_new_resolver("run_dataset", run_dataset, replace=True)
+OmegaConf.register_new_resolver("run_backend", lambda b: "" if b == "cpp" else f"_{b}", replace=True)
 # What Hydra, the experiment and its trackers write before the first pair: a directory holding nothing
 # else is no run.
 EMPTY_RUN = {".hydra", "run.log", "config.yaml", "config.resumed.yaml", "wandb", "recording.rrd", "rerun"}
@@ -208,6 +217,23 @@ def check_keys(argv: list[str]) -> str | None:
     return f"unknown config key {key!r}{hint} (python run.py --cfg job shows every key)"
 
 
+def check_output_dir(argv: list[str]) -> str | None:
+    """Our message where the run (or sweep) directory cannot be made (Hydra's is a raw traceback): its
+    nearest existing ancestor is a file, or not writable."""
+    import os
+
+    key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(argv) else "hydra.run.dir"
+    given = next((a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] == key), None)
+    target = Path(given.strip("'\"") if given and "${" not in given else "outputs")
+    probe = target
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.is_dir() and os.access(probe, os.W_OK):
+        return None
+    why = "is a file" if probe.exists() and not probe.is_dir() else "is not writable"
+    return f"cannot write the run directory {target}: {probe.resolve()} {why} (set {key}=<a writable path>)"
+
+
 def _own_error(exc: BaseException) -> FastMacError | None:
     """The project's error behind exc (Hydra wraps constructor errors in InstantiationException)."""
     seen = 0
@@ -221,7 +247,7 @@ def _own_error(exc: BaseException) -> FastMacError | None:
 
 def run() -> None:
     """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
-    hint = check_launcher(sys.argv[1:]) or check_keys(sys.argv[1:])
+    hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
     if hint:
         log.addHandler(logging.StreamHandler())
         log.error(hint)

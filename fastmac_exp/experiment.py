@@ -177,8 +177,11 @@ def run_experiment(
         check_is_run(run_dir, resume)
     comp = Components(cfg)  # every group's options, before anything is written
     names = comp.names()
-    run_dir.mkdir(parents=True, exist_ok=True)
-    lock = RunLock(run_dir).acquire()
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        lock = RunLock(run_dir).acquire()
+    except OSError as exc:
+        raise InputError(f"cannot write in {run_dir}: {exc.strerror}: {exc.filename}") from None
     try:
         return _run_locked(cfg, run_dir, comp, names)
     finally:
@@ -196,8 +199,12 @@ def _run_locked(
         )
     if resume and (run_dir / CONFIG_NAME).is_file():
         check_same_experiment(run_dir, cfg)
-    _save_config(cfg, run_dir)
-    results = ResultsLog(run_dir)
+    try:
+        _save_config(cfg, run_dir)
+        results = ResultsLog(run_dir)
+        results.check_writable()
+    except OSError as exc:  # a read-only directory, an unwritable results.jsonl: before any pair runs
+        raise InputError(f"cannot write in {run_dir}: {exc.strerror}: {exc.filename}") from None
     done = results.done()
     todo = [(i, n) for i, n in enumerate(names) if n not in done]
     if done:
@@ -268,6 +275,7 @@ def _run_locked(
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
+            families=sorted(table["family"].dropna().astype(str).unique()) or _config_family(cfg),
             descriptor=comp.labels["descriptor"],
             sampler=comp.labels["sampler"],
             backend=comp.labels["backend"],
@@ -341,6 +349,11 @@ def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[
     ]  # fmt: skip
 
 
+def _config_family(cfg: DictConfig) -> list[str]:
+    family = OmegaConf.select(cfg, "dataset.family", default=None)
+    return [str(family)] if family else []
+
+
 def _int(v: Any) -> int | None:
     return None if v is None or pd.isna(v) else int(v)
 
@@ -364,7 +377,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     else:
         rr = "RR: no ground truth: not scored"
     lines = [
-        f"dataset={s.get('dataset')} descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
+        f"dataset={s.get('dataset')}"
+        + (f" family={','.join(s['families'])}" if s.get("families") else "")
+        + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
         f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
         "  ".join(
             [f"pairs: {s.get('pairs')}"]

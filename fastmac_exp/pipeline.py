@@ -97,7 +97,7 @@ def run_pair(
         inlier_ratio_kept=float(kept_labels.mean()) if kept_labels is not None else np.nan,
         clique_size=len(result.clique),
         clique_inliers=int(corr.labels[result.clique].sum()) if corr.labels is not None else None,
-        pose_inliers=pose_inliers(work, result.pose, params.inlier_threshold),
+        pose_inliers=result.inliers,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -172,6 +172,7 @@ def register_correspondences(
     result = backend.register(work.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
+    result.inliers = pose_inliers(work, result.pose, params.inlier_threshold)
     if offset.any():
         result.pose = to_original(result.pose, offset)
         result.pose_unrefined = to_original(result.pose_unrefined, offset)

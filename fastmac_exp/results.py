@@ -59,6 +59,12 @@ class ResultsLog:
             os.fsync(f.fileno())
         os.replace(tmp, self.path)
 
+    def check_writable(self) -> None:
+        """OSError now, not at the first finished pair, when rows cannot be appended to an existing log."""
+        if self.path.exists():
+            with open(self.path, "a"):
+                pass
+
     def done(self) -> set[str]:
         return {str(r["pair"]) for r in self.rows}
 

@@ -166,7 +166,7 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     p = run("sampler=none", "limit=1", _default_run_dir(runs), tmp=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     (made,) = runs.iterdir()
-    assert made.name.endswith("_synthetic_fpfh_none_1.0"), made.name
+    assert made.name.endswith("_synthetic-3dmatch_fpfh_none_1.0"), made.name
     # a config error and a resume= run leave no directory of their own
     bad = run("dataset.family=kiti", _default_run_dir(runs), tmp=tmp_path)
     assert bad.returncode == 2
@@ -176,12 +176,65 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     assert list(made.glob("run.resumed-*.log"))  # the resumed run's log went with its results
 
 
+def test_run_names_and_the_header_say_the_family_and_a_backend_other_than_cpp(tmp_path):
+    runs = tmp_path / "runs"
+    p = run("dataset.family=kitti", "backend=python", "limit=1", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    assert made.name.endswith("_synthetic-kitti_fpfh_highpass_0.2_python"), made.name
+    assert (
+        "dataset=synthetic family=kitti descriptor=fpfh sampler=highpass ratio=0.2 backend=python" in p.stdout
+    )
+
+
 def test_a_key_typo_gets_the_closest_key_not_a_plus_suggestion(tmp_path):
     p = run("dataset.famly=kitti", tmp=tmp_path)
     out = p.stdout + p.stderr
     assert p.returncode == 2
     assert "unknown config key 'dataset.famly'; did you mean 'dataset.family'?" in out
     assert "+dataset.famly" not in out
+    for typo in ("+ratoi=0.1", "ratoi=0.1"):  # Hydra itself suggests the `+` form, which adds an unused key
+        p = run(typo, tmp=tmp_path)
+        out = p.stdout + p.stderr
+        assert p.returncode == 2 and "unknown config key 'ratoi'; did you mean 'ratio'?" in out, out[-2000:]
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_keys_are_checked_before_the_run_starts(tmp_path):
+    for override, message in [
+        ("seed=abc", "seed must be a whole number >= 0, got 'abc' (config key: seed)"),
+        ("seed=1.5", "seed must be a whole number >= 0, got 1.5"),
+        ("seed=-1", "seed must be a whole number >= 0, got -1"),
+        ("limit=abc", "limit must be >= 1 (null = every pair), got 'abc' (config key: limit)"),
+        ("workers=0", "workers must be a whole number >= 1, got 0 (config key: workers)"),
+        ("mac.max_nodes=abc", "graph/mac override of the wrong type"),
+    ]:
+        p = run(override, tmp=tmp_path)
+        out = p.stdout + p.stderr
+        assert p.returncode == 2 and message in out and "Traceback" not in out, (override, out[-2000:])
+    assert not (tmp_path / "run").exists()
+
+
+def test_workers_are_capped_at_the_pairs_to_run(tmp_path):
+    p = run("workers=64", "limit=2", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "workers=64: 2 pair(s) to run, so 2 worker(s)" in p.stdout + p.stderr
+
+
+def test_an_unwritable_run_directory_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    p = run("limit=1", f"hydra.run.dir={blocker / 'run'}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out, out[-2000:]
+    assert f"cannot write the run directory {blocker / 'run'}" in out
+    done = tmp_path / "done"
+    assert run("limit=1", f"hydra.run.dir={done}", tmp=tmp_path).returncode == 0
+    (done / "results.jsonl").rename(done / "moved.jsonl")
+    (done / "results.jsonl").mkdir()  # what a resume cannot append to (root ignores permission bits)
+    p = run("limit=2", f"resume={done}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out and f"cannot write in {done}" in out, out[-2000:]
 
 
 def test_parallel_sweep_members_print_whole_summaries(tmp_path):
@@ -189,7 +242,9 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
     p = sweep("hydra/launcher=local", "sampler=highpass,random", "limit=1", sweep_dir=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     lines = p.stdout.splitlines()
-    starts = [i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic descriptor=fpfh")]
+    starts = [
+        i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic family=3dmatch descriptor=fpfh")
+    ]
     assert len(starts) == 2
     for i in starts:  # the block's lines follow each other, each one whole
         assert lines[i + 1].startswith("pairs: 1  registered:")
