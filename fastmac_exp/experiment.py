@@ -209,6 +209,8 @@ def _run_locked(
     todo = [(i, n) for i, n in enumerate(names) if n not in done]
     if done:
         log.info("resuming %s: %d of %d pairs already done", run_dir, len(names) - len(todo), len(names))
+    if todo and getattr(comp.descriptor, "cost_note", None):
+        log.warning("descriptor=%s: %s", comp.labels["descriptor"], comp.descriptor.cost_note)
 
     trackers = _make_trackers(cfg)
     plain_cfg = OmegaConf.to_container(cfg, resolve=True)

@@ -138,7 +138,8 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
     out = p.stdout
     assert out.startswith("fastmac-exp: FastMAC")
     for line in ("sampler: allpass,", "method: fastmac20,", "experiment: descriptor_robustness,",
-                 "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05"):  # fmt: skip
+                 "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05",
+                 "limit (the first N pairs; null = all)"):  # fmt: skip
         assert line in out, line
     assert "Powered by Hydra" not in out  # not Hydra's generic text
 

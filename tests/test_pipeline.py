@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from fastmac_exp.api import register
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.descriptors.base import Descriptor  # noqa: F401 - interface import must work
+from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
 from fastmac_exp.errors import InputError
 from fastmac_exp.experiment import run_experiment
 from fastmac_exp.params import mac_params_for
@@ -207,3 +208,17 @@ def test_pair_row_keeps_what_was_measured_and_leaves_out_the_rest():
     assert list(row.to_dict())[-3:] == ["t_describe_ms", "t_total_ms", "pose"]
     with pytest.raises(AttributeError, match="no field 'n_kep'"):
         row.set(n_kep=3)
+
+
+class CostlyDescriptor(PrecomputedDescriptor):
+    cost_note = "about an hour a pair"
+
+
+def test_a_costly_descriptor_says_what_it_costs_when_the_run_starts(tmp_path, caplog):
+    from fastmac_exp.descriptors.buffer import BufferDescriptor
+
+    assert "minutes" in BufferDescriptor.cost_note and "19 min" in BufferDescriptor.cost_note
+    cfg = _cfg(tmp_path, descriptor={"_target_": "tests.test_pipeline.CostlyDescriptor"})
+    with caplog.at_level("WARNING", logger="fastmac_exp.experiment"):
+        run_experiment(cfg, tmp_path / "run")
+    assert any("about an hour a pair" in r.getMessage() for r in caplog.records)
