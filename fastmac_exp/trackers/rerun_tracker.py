@@ -38,7 +38,7 @@ Every line carries a hover label `#<correspondence id> <class> score <sampler sc
 set to the dataset's up axis (`up`, or the family's: +z for KITTI-like scans, -y for 3DMatch-like camera
 fragments). Clouds are downsampled to `max_points`; when a dataset has no clouds (precomputed
 correspondences) the correspondence end points stand in for them. Geometry is recorded for the first
-`max_pairs` successful pairs; scalars for all.
+`max_pairs` registered pairs and the first `max_pairs` that did not register; scalars for all.
 """
 
 from __future__ import annotations
@@ -207,6 +207,7 @@ class RerunTracker(Tracker):
         self._eyes: dict[str, dict[str, dict[str, Any]]] = {}  # root -> view -> EyeControls3D arguments
         self._n = 0
         self._n_ok = 0
+        self._n_geo_ok = self._n_geo_failed = 0  # pairs recorded with geometry
         self._run_dir: Path | None = None
         try:
             import rerun as rr
@@ -324,7 +325,10 @@ class RerunTracker(Tracker):
         self._n += 1
         ok = _finite(row.get("success")) == 1.0
         self._n_ok += ok
-        want_geometry = outcome.corr is not None and len(self.recorded) < self.max_pairs
+        # the first max_pairs registered pairs and, beside them, up to max_pairs that did not register:
+        # the ones a researcher most wants to see
+        shown = self._n_geo_ok if ok else self._n_geo_failed
+        want_geometry = outcome.corr is not None and shown < self.max_pairs
         if self.per == "run":
             rec = self.rec
         elif want_geometry:
@@ -343,6 +347,10 @@ class RerunTracker(Tracker):
             root = "pairs/" + self._rr.escape_entity_path_part(str(row.get("pair", index)))
             self._log_geometry(rec, root, outcome)
             self.recorded.append(root)
+            if ok:
+                self._n_geo_ok += 1
+            else:
+                self._n_geo_failed += 1
             if self.per == "pair":
                 self._close(rec, [root])
 
