@@ -254,6 +254,13 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
         while lines[j].startswith("failed x"):  # a failed pair's reason, if any
             j += 1
         assert lines[j].startswith("results: ")
+    # the sweep ends with one table of its members and the command to run next
+    table = p.stdout[p.stdout.index(f"sweep {tmp_path}:") :].splitlines()
+    assert table[1].split() == ["member", "pairs", "RR", "%", "RE", "deg", "TE", "cm", "ms", "failed"]
+    assert table[2].startswith("0_limit=1,sampler=highpass") and table[3].startswith(
+        "1_limit=1,sampler=random"
+    )
+    assert table[4] == f"next: python -m fastmac_exp.report {tmp_path}"
 
 
 def test_the_package_finds_its_configs_and_models_without_the_repository_layout(tmp_path):

@@ -480,3 +480,16 @@ def test_pairs_that_did_not_register_get_geometry_and_the_report_shows_them_firs
     table["run"] = "."
     pngs = pair_snapshots(tmp_path, table, tmp_path / "report", max_pairs=2)
     assert [p.name for p in pngs] == ["p4.png", "p1.png"]  # not registered, then RE 0.2 before 0.1
+
+
+def test_a_sweep_member_records_the_geometry_of_one_pair_by_default(tmp_path, monkeypatch):
+    from fastmac_exp.trackers import rerun_tracker
+    from fastmac_exp.trackers.rerun_snapshot import read_pairs
+
+    monkeypatch.setattr(rerun_tracker, "in_multirun", lambda: True)
+    outcomes = [make_outcome(i, f"p{i}") for i in range(3)]
+    run_tracker(rerun_tracker.RerunTracker(max_pairs=4, max_points=200), tmp_path / "a", outcomes)
+    assert [g.name for g in read_pairs(tmp_path / "a" / "recording.rrd")] == ["p0"]
+    all_pairs = rerun_tracker.RerunTracker(max_pairs=4, max_points=200, sweep_max_pairs=None)
+    run_tracker(all_pairs, tmp_path / "b", outcomes)
+    assert [g.name for g in read_pairs(tmp_path / "b" / "recording.rrd")] == ["p0", "p1", "p2"]

@@ -175,6 +175,8 @@ class RerunTracker(Tracker):
     max_outlier_lines: the cap on GT-outlier lines among all correspondences (-1: no cap).
     radius: the point radius in scene units (lines scale from it); null = a fixed size on screen.
     up: the views' up axis ("+z", "-y", ...); null = the dataset family's.
+    sweep_max_pairs: max_pairs in a sweep member (the report shows a few pairs of a sweep; twenty members
+    recording as a single run does made 126 MB); None: max_pairs.
     """
 
     name = "rerun"
@@ -189,12 +191,14 @@ class RerunTracker(Tracker):
         radius: float | None = None,
         up: str | None = None,
         blueprint: bool = True,
+        sweep_max_pairs: int | None = 1,
     ) -> None:
         if per not in PER:
             raise ValueError(f"tracker.rerun.per must be one of {PER}, got {per!r}")
         up_axis(None, up)  # a bad value fails here, not at the first pair
         self.per = per
         self.max_pairs = int(max_pairs)
+        self.sweep_max_pairs = sweep_max_pairs
         self.path = path
         self.max_points = int(max_points)
         self.max_outlier_lines = int(max_outlier_lines)
@@ -222,6 +226,10 @@ class RerunTracker(Tracker):
         if self._rr is None:
             return
         self._run_dir = Path(run_dir)
+        if self.sweep_max_pairs is not None and in_multirun() and self.sweep_max_pairs < self.max_pairs:
+            log.info("rerun: a sweep member records the geometry of %d pair(s) "
+                     "(tracker.rerun.sweep_max_pairs=null: as a run)", self.sweep_max_pairs)  # fmt: skip
+            self.max_pairs = int(self.sweep_max_pairs)
         if self.per == "run":
             target = Path(self.path) if self.path else Path("recording.rrd")
             target = target if target.is_absolute() else self._run_dir / target
@@ -461,6 +469,14 @@ class RerunTracker(Tracker):
         if self.rec is not None:
             rec, self.rec = self.rec, None
             self._close(rec, self.recorded)
+
+
+def in_multirun() -> bool:
+    """Whether this process runs a member of a Hydra sweep."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
 def part_path(path: Path, part: int) -> Path:
