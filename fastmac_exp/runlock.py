@@ -75,6 +75,41 @@ class RunLock:
         self.release()
 
 
+def held_by(run_dir: str | Path) -> str | None:
+    """Who holds `run_dir` now ('pid N on host H'), or None: a lock file whose process on this host is
+    alive and holds the lock (probed with a shared lock only then: a run that is taking the lock at that
+    instant cannot be refused by a probe). Another host's lock is left to `RunLock.acquire`."""
+    path = Path(run_dir) / LOCK_NAME
+    try:
+        owner = json.loads(path.read_text() or "{}")
+        pid = int(owner["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if owner.get("host") != socket.gethostname() or not _alive(pid):
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return owner_text(path)
+    finally:
+        os.close(fd)
+    return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
 def _read_owner(fd: int) -> dict:
     try:
         return json.loads(os.pread(fd, 4096, 0) or b"{}")

@@ -1,16 +1,12 @@
-"""The end of a sweep: one table of its members (RR, RE, TE, ms, failed pairs) and the report command,
-printed by a Hydra callback once every member has finished (conf/config.yaml: hydra.callbacks)."""
+"""The end of a sweep: one table of its members (RR, RE, TE, ms, failed pairs), which
+fastmac_exp/callbacks.py prints once every member has finished."""
 
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
-
-from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
 
 
 def _num(v: Any, fmt: str) -> str:
@@ -41,15 +37,3 @@ def sweep_table(sweep_dir: Path) -> str:
     lines = ["  ".join(c.ljust(w) if k == 0 else c.rjust(w) for k, (c, w) in enumerate(zip(r, widths)))
              for r in rows]  # fmt: skip
     return "\n".join(lines)
-
-
-class SweepSummary(Callback):
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        sweep_dir = Path(str(config.hydra.sweep.dir))
-        if not sweep_dir.is_dir():
-            return
-        text = (f"\nsweep {sweep_dir}:\n{sweep_table(sweep_dir)}\n"
-                f"next: python -m fastmac_exp.report {sweep_dir}\n")  # fmt: skip
-        sys.stdout.flush()
-        sys.stdout.write(text)
-        sys.stdout.flush()

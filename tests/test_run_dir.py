@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from fastmac_exp.results import read_rows
 from fastmac_exp.runlock import LOCK_NAME, RunLock
 from tests.test_cli import REPO, _default_run_dir, run
@@ -26,13 +28,32 @@ def test_a_run_directory_held_by_a_live_run_is_refused_and_a_stale_lock_is_taken
     out = p.stdout + p.stderr
     assert p.returncode == 2, out[-2000:]
     assert f"{run_dir} is in use by another run (pid {os.getpid()} on host {socket.gethostname()})" in out
-    assert sorted(x.name for x in run_dir.iterdir()) == [".hydra", "config.yaml", "run.log"]  # not removed
+    # nothing written there: not even Hydra's .hydra/ and log, which would overwrite the holder's
+    assert [x.name for x in run_dir.iterdir()] == ["config.yaml"]
     (run_dir / "config.yaml").unlink()
     # a lock file whose process is gone (killed without releasing it) does not keep the directory
     (run_dir / LOCK_NAME).write_text(json.dumps({"host": socket.gethostname(), "pid": 2**22 + 7}))
     p = run("limit=1", tmp=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     assert len(read_rows(run_dir / "results.jsonl")) == 1 and not (run_dir / LOCK_NAME).exists()
+
+
+def test_the_experiment_takes_the_lock_itself_for_runs_that_start_together(tmp_path):
+    """The callback's early check cannot see a run that starts at the same instant: the experiment's own
+    lock is what keeps the second one out (library use included)."""
+    from fastmac_exp.experiment import run_experiment
+    from fastmac_exp.runlock import RunLocked
+    from tests.test_pipeline import _cfg
+
+    (tmp_path / "run").mkdir()
+    with RunLock(tmp_path / "run"):
+        with pytest.raises(RunLocked, match=f"pid {os.getpid()} on host"):
+            run_experiment(_cfg(tmp_path), tmp_path / "run")
+        with pytest.raises(RunLocked):
+            RunLock(tmp_path / "run").acquire()
+    assert not (tmp_path / "run" / "results.jsonl").exists()
+    _, summary = run_experiment(_cfg(tmp_path), tmp_path / "run")  # released: the next run goes ahead
+    assert summary["pairs"] == 4
 
 
 def test_resume_refuses_another_experiment_and_lists_what_differs(tmp_path):
