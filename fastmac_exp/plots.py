@@ -111,6 +111,7 @@ def plot_sampling(
             else:
                 ax.set_ylim(bottom=0)
                 if not g[metric].notna().any():  # RE/TE are means over successful pairs
+                    ax.set_yticks([])  # no empty 0-0.05 scale
                     ax.text(0.5, 0.5, "no successful pair", transform=ax.transAxes, ha="center",
                             va="center", fontsize=11, color="0.4")  # fmt: skip
             ax.set_title(f"{panel}: {label}" if panel else label, fontsize=10)
