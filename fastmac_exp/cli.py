@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -15,8 +16,10 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from fastmac_exp.errors import FastMacError
+from fastmac_exp.errors import FastMacError, InputError
 from fastmac_exp.resources import config_dir
+from fastmac_exp.resume import is_auto, latest_run
+from fastmac_exp.runlock import RunLocked
 from fastmac_exp.samplers import ratio_used
 
 log = logging.getLogger("fastmac_exp")
@@ -63,8 +66,30 @@ def check_launcher(argv: list[str]) -> str | None:
 
 # The ratio in a run directory's name: the one used (sampler=none keeps everything).
 OmegaConf.register_new_resolver("run_ratio", ratio_used, replace=True)
-# What Hydra and the experiment write before the first pair: a directory holding nothing else is no run.
-EMPTY_RUN = {".hydra", "run.log", "config.yaml", "config.resumed.yaml"}
+
+
+def run_dataset(choice: str, family: str | None) -> str:
+    """The dataset in a run directory's name, with its family where the name does not say it."""
+    return f"{choice}-{family}" if family and family != choice else choice
+
+
+OmegaConf.register_new_resolver("run_dataset", run_dataset, replace=True)
+OmegaConf.register_new_resolver("run_backend", lambda b: "" if b == "cpp" else f"_{b}", replace=True)
+# What Hydra, the experiment and its trackers write before the first pair: a directory holding nothing
+# else is no run.
+EMPTY_RUN = {".hydra", "run.log", "config.yaml", "config.resumed.yaml", "wandb", "recording.rrd", "rerun"}
+
+
+def latest_or_refuse(cfg: DictConfig, run_dir: Path) -> Path:
+    """resume=auto in a single run: the latest run of exactly this config beside this run's directory."""
+    found = latest_run(run_dir.parent, cfg)
+    if found is None:
+        raise InputError(
+            f"resume=auto: no earlier run of this exact config in {run_dir.parent.resolve()}; drop resume= "
+            "to start one, or pass resume=<run dir>"
+        )
+    log.info("resume=auto: continuing %s", found)
+    return found
 
 
 def drop_if_empty(run_dir: Path, keep_log_in: Path | None = None) -> None:
@@ -87,13 +112,21 @@ def main(cfg: DictConfig) -> float:
     run_dir = Path(hydra_cfg.runtime.output_dir)
     single = hydra_cfg.mode != RunMode.MULTIRUN
     try:
+        if single and is_auto(cfg.get("resume")):
+            cfg.resume = str(latest_or_refuse(cfg, run_dir))
         _, summary = run_experiment(cfg, run_dir)
+    except KeyboardInterrupt as exc:
+        if not getattr(exc, "saved", False):
+            log.warning("interrupted before the run started: nothing was written")
+        if single:
+            drop_if_empty(run_dir)
+        sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - our own errors, even wrapped by Hydra's instantiate, exit cleanly
         ours = _own_error(exc)
         if ours is None:
             raise
         log.error("%s", ours)
-        if single:
+        if single and not isinstance(ours, RunLocked):  # a locked directory is another run's
             drop_if_empty(run_dir)
         sys.exit(2)
     if single and Path(summary["run_dir"]).resolve() != run_dir.resolve():
@@ -122,10 +155,13 @@ def key_value(overrides: list[str], key: str) -> str:
 
 def check_keys(argv: list[str]) -> str | None:
     """Our message for an override of a key that does not exist (Hydra's suggests adding it with `+`, which
-    is never what a typo needs), with the closest existing key; None when the overrides compose."""
+    is never what a typo needs), or a `+key=` that adds a key no part reads (`+` is for the groups, as in
+    +experiment=...), with the closest existing key; None when the overrides compose."""
     overrides = [a for a in argv if not a.startswith(("-", "hydra.", "hydra/"))]  # Hydra's own: its checks
-    dotted = [a for a in overrides if "=" in a and "." in a.split("=")[0] and a[0] not in "+~"]
-    if not dotted:
+    assigned = [a for a in overrides if "=" in a and not a.startswith(("++", "~"))]
+    added = [a.split("=")[0][1:] for a in assigned if a.startswith("+")]
+    added = [k for k in added if not (config_dir() / k.replace(".", "/")).is_dir()]  # +group=option
+    if not assigned:
         return None
     import difflib
     import re
@@ -143,9 +179,12 @@ def check_keys(argv: list[str]) -> str | None:
         finally:
             GlobalHydra.instance().clear()
 
+    def base(o: str) -> str:
+        return o.split("=")[0].lstrip("+")
+
+    key = None
     try:
         composed(overrides)
-        return None
     except Exception as exc:  # noqa: BLE001 - anything but a missing key is left to Hydra's own report
         m = re.search(r"Could not override '([^']+)'", str(exc))
         if not m:
@@ -155,9 +194,14 @@ def check_keys(argv: list[str]) -> str | None:
         n = key_value(overrides, key)
         return f"dataset.limit is a run key: write limit={n} (the first N pairs of any dataset)"
     try:
-        cfg = composed([o for o in overrides if o.split("=")[0] != key])
+        cfg = composed([o for o in overrides if base(o) != key and base(o) not in added])
     except Exception:  # noqa: BLE001
         return None
+    if key is None:
+        missing = object()
+        key = next((k for k in added if OmegaConf.select(cfg, k, default=missing) is missing), None)
+        if key is None:
+            return None
     known = []
 
     def walk(node, prefix: str) -> None:
@@ -173,6 +217,23 @@ def check_keys(argv: list[str]) -> str | None:
     return f"unknown config key {key!r}{hint} (python run.py --cfg job shows every key)"
 
 
+def check_output_dir(argv: list[str]) -> str | None:
+    """Our message where the run (or sweep) directory cannot be made (Hydra's is a raw traceback): its
+    nearest existing ancestor is a file, or not writable."""
+    import os
+
+    key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(argv) else "hydra.run.dir"
+    given = next((a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] == key), None)
+    target = Path(given.strip("'\"") if given and "${" not in given else "outputs")
+    probe = target
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe.is_dir() and os.access(probe, os.W_OK):
+        return None
+    why = "is a file" if probe.exists() and not probe.is_dir() else "is not writable"
+    return f"cannot write the run directory {target}: {probe.resolve()} {why} (set {key}=<a writable path>)"
+
+
 def _own_error(exc: BaseException) -> FastMacError | None:
     """The project's error behind exc (Hydra wraps constructor errors in InstantiationException)."""
     seen = 0
@@ -186,12 +247,20 @@ def _own_error(exc: BaseException) -> FastMacError | None:
 
 def run() -> None:
     """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
-    hint = check_launcher(sys.argv[1:]) or check_keys(sys.argv[1:])
+    hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
     if hint:
         log.addHandler(logging.StreamHandler())
         log.error(hint)
         sys.exit(2)
-    main()
+    signal.signal(signal.SIGTERM, _interrupt)  # a SIGTERM ends a run as Ctrl-C does
+    try:
+        main()
+    except KeyboardInterrupt:  # inside Hydra's own start-up, before main's handler
+        sys.exit(130)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import signal
+import sys
 import traceback
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -18,12 +20,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
 from fastmac_exp.cache import CorrespondenceCache
+from fastmac_exp.checks import check_run_keys
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
-from fastmac_exp.pipeline import PROTOCOLS, PairOutcome, run_pair
+from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.resources import find_file
-from fastmac_exp.results import ResultsLog
+from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
+from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
+from fastmac_exp.runlock import RunLock
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +66,9 @@ class Components:
             if int(self.limit) < 1:
                 raise InputError(f"limit must be >= 1 (null = every pair), got {self.limit}")
             names = names[: int(self.limit)]
+        check_inputs = getattr(self.dataset, "check_inputs", None)  # files a config names, up front
+        if check_inputs is not None:
+            check_inputs()
         return names
 
 
@@ -118,7 +126,27 @@ _WORKER: Components | None = None
 
 def _init_worker(cfg_yaml: str) -> None:
     global _WORKER
+    # The main process handles Ctrl-C (sent to the whole process group) and SIGTERM, and ends the workers;
+    # a worker whose main process dies however it dies (SIGKILL) gets SIGTERM from the kernel.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent()
     _WORKER = Components(OmegaConf.create(cfg_yaml))
+
+
+def _die_with_parent() -> None:
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM))
+
+
+def _end_workers(pool: ProcessPoolExecutor) -> None:
+    """Stop the workers now (an interrupt or an error): running pairs are abandoned, not waited for."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # terminate_workers() in 3.14
+        proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _work(args: tuple[int, str]) -> PairOutcome:
@@ -140,43 +168,60 @@ def run_experiment(
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Run every (remaining) pair, write results.{jsonl,csv,parquet}, summary.json and config.yaml."""
     cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
-    if cfg.protocol not in PROTOCOLS:
-        raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.protocol!r}")
-    ratio = cfg.get("ratio")
-    if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
-        raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
-    samples = cfg.get("samples")
-    if samples is not None and (isinstance(samples, bool) or not isinstance(samples, int) or samples < 3):
-        raise InputError(f"samples must be null or an integer >= 3, got {samples!r} (config key: samples)")
+    check_run_keys(cfg)
     resume = cfg.get("resume")
     # resume=auto: continue this run's own directory if it holds results (sweep members, whose directories
     # Hydra names; `resume` is left out of their names), else start it
-    auto = resume is True or (isinstance(resume, str) and resume.lower() == "auto")
+    auto = is_auto(resume)
     run_dir = Path(run_dir) if auto or not resume else Path(resume)
-    if resume and not auto and not run_dir.is_dir():
-        raise InputError(f"resume={resume}: no such run directory")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    _save_config(cfg, run_dir)
-
-    comp = Components(cfg)
+    if resume and not auto:
+        check_is_run(run_dir, resume)
+    comp = Components(cfg)  # every group's options, before anything is written
     names = comp.names()
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        lock = RunLock(run_dir).acquire()
+    except OSError as exc:
+        raise InputError(f"cannot write in {run_dir}: {exc.strerror}: {exc.filename}") from None
+    try:
+        return _run_locked(cfg, run_dir, comp, names)
+    finally:
+        lock.release()
+
+
+def _run_locked(
+    cfg: DictConfig, run_dir: Path, comp: Components, names: list[str]
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    resume = cfg.get("resume")
     if not resume and (run_dir / "results.jsonl").exists():
         raise InputError(
             f"{run_dir} already holds results; pass resume={run_dir} (resume=auto in a sweep) to continue "
             "that run, or choose a new run directory"
         )
-    results = ResultsLog(run_dir)
+    if resume and (run_dir / CONFIG_NAME).is_file():
+        check_same_experiment(run_dir, cfg)
+    try:
+        _save_config(cfg, run_dir)
+        results = ResultsLog(run_dir)
+        results.check_writable()
+    except OSError as exc:  # a read-only directory, an unwritable results.jsonl: before any pair runs
+        raise InputError(f"cannot write in {run_dir}: {exc.strerror}: {exc.filename}") from None
     done = results.done()
     todo = [(i, n) for i, n in enumerate(names) if n not in done]
     if done:
         log.info("resuming %s: %d of %d pairs already done", run_dir, len(names) - len(todo), len(names))
+    if todo and getattr(comp.descriptor, "cost_note", None):
+        log.warning("descriptor=%s: %s", comp.labels["descriptor"], comp.descriptor.cost_note)
 
     trackers = _make_trackers(cfg)
     plain_cfg = OmegaConf.to_container(cfg, resolve=True)
     for t in trackers:
         t.start(plain_cfg, run_dir, names)
 
-    workers = int(cfg.get("workers", 1) or 1)
+    workers = int(cfg.get("workers", 1))
+    if workers > 1 and len(todo) < workers:
+        log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
+        workers = max(len(todo), 1)
     bar = _progress(len(todo), bool(cfg.get("progress", True)))
     n_ok = n_done = 0
     t_sum = 0.0
@@ -185,6 +230,8 @@ def run_experiment(
     def consume(out: PairOutcome) -> None:
         nonlocal n_ok, n_done, t_sum
         results.append(out.row)
+        if out.row.get("success") is None and not out.row.get("error") and out.row.get("pose"):
+            write_pose(run_dir, out.row)  # no GT: the estimate is the result
         for t in trackers:
             try:
                 t.log_pair(out)
@@ -202,22 +249,36 @@ def run_experiment(
                 consume(process_pair(comp, i, n))
         else:
             cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
-            with ProcessPoolExecutor(
-                max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,)
-            ) as pool:
+            pool = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,))
+            try:
                 for out in pool.map(_work, todo):
                     consume(out)
+            except BaseException:
+                _end_workers(pool)
+                raise
+            pool.shutdown()
     except KeyboardInterrupt:
         interrupted = True
-        log.warning("interrupted: %d pairs are saved in %s; rerun with resume=%s", n_done, run_dir, run_dir)
+        if results.rows:
+            log.warning(
+                "interrupted: %d pairs are saved in %s; rerun with resume=%s",
+                len(results.rows),
+                run_dir,
+                run_dir,
+            )
+        else:
+            log.warning("interrupted before the first pair finished: nothing to resume")
     finally:
         bar.close()
-        table = results.write_tables()
+        keep = bool(results.rows) or not interrupted  # an interrupted start-up leaves no tables of nothing
+        table = results.write_tables() if keep else results.table()
         summary = summarize(table)
         summary["failures"] = failure_reasons(table)
+        summary["unscored_pairs"] = unscored_pairs(table, run_dir)
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
+            families=sorted(table["family"].dropna().astype(str).unique()) or _config_family(cfg),
             descriptor=comp.labels["descriptor"],
             sampler=comp.labels["sampler"],
             backend=comp.labels["backend"],
@@ -228,29 +289,24 @@ def run_experiment(
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,
         )
-        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        if keep:
+            (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         for t in trackers:
             try:
                 t.finish(table, summary)
             except Exception as exc:  # noqa: BLE001
                 log.warning("tracker %s failed to finish: %s", t.name, exc)
     if interrupted:
-        raise KeyboardInterrupt
+        exc = KeyboardInterrupt("run interrupted; its finished pairs are saved")
+        exc.saved = True  # type: ignore[attr-defined] - the console has said what was saved
+        raise exc
     return table, summary
 
 
 def _save_config(cfg: DictConfig, run_dir: Path) -> None:
-    path = run_dir / "config.yaml"
+    path = run_dir / CONFIG_NAME
     if cfg.get("resume") and path.exists():
-        old = OmegaConf.load(path)
-        keys = ("dataset", "descriptor", "sampler", "backend", "ratio", "samples", "seed", "protocol",
-                "graph", "mac")  # fmt: skip
-        changed = [k for k in keys if OmegaConf.select(old, k) != OmegaConf.select(cfg, k)]
-        if changed:
-            log.warning(
-                "resume: config differs from the saved run in %s; continuing with the new one", changed
-            )
-        path = run_dir / "config.resumed.yaml"
+        path = run_dir / RESUMED_NAME
     OmegaConf.save(cfg, path, resolve=False)
 
 
@@ -285,6 +341,26 @@ def failure_reasons(table: pd.DataFrame) -> dict[str, dict[str, Any]]:
     }
 
 
+def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[dict[str, Any]]:
+    """The pairs registered without GT: their pose, its file and what a user can trust it by."""
+    rows = table[table["success"].isna() & table["error"].eq("") & table["pose"].notna()]
+    return [
+        {"pair": str(r["pair"]), "pose": pose_matrix(r["pose"]).tolist(),
+         "pose_file": str(pose_file(run_dir, str(r["pair"]))), "clique_size": _int(r.get("clique_size")),
+         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in"))}
+        for _, r in rows.head(most).iterrows()
+    ]  # fmt: skip
+
+
+def _config_family(cfg: DictConfig) -> list[str]:
+    family = OmegaConf.select(cfg, "dataset.family", default=None)
+    return [str(family)] if family else []
+
+
+def _int(v: Any) -> int | None:
+    return None if v is None or pd.isna(v) else int(v)
+
+
 def _stage_label(stage: str, summary: dict[str, Any]) -> str:
     cached = int(summary.get("describe_cached") or 0)
     if stage != "describe" or not cached:
@@ -298,16 +374,34 @@ def format_summary(summary: dict[str, Any]) -> str:
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
     s = summary
     nan = float("nan")
+    scored, unscored = s.get("scored", s.get("pairs")), s.get("unscored", 0)
+    if scored:
+        rr = f"RR: {100 * s.get('RR', nan):.1f}%" + (f" (of the {scored} pairs with GT)" if unscored else "")
+    else:
+        rr = "RR: no ground truth: not scored"
     lines = [
-        f"dataset={s.get('dataset')} descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
+        f"dataset={s.get('dataset')}"
+        + (f" family={','.join(s['families'])}" if s.get("families") else "")
+        + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
         f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
-        f"pairs: {s.get('pairs')}  registered: {s.get('registered', 0)}  failed: {s.get('failed', 0)}",
-        f"RR: {100 * s.get('RR', nan):.1f}%   RE: {s.get('RE_deg', nan):.2f} deg   "
-        f"TE: {s.get('TE_cm', nan):.2f} cm   "
+        "  ".join(
+            [f"pairs: {s.get('pairs')}"]
+            + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
+            + ([f"no ground truth (not scored): {unscored}"] if unscored else [])
+            + [f"failed with an error: {s.get('failed', 0)}"]
+        ),
+        f"{rr}   RE: {s.get('RE_deg', nan):.2f} deg   TE: {s.get('TE_cm', nan):.2f} cm   "
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
         "median ms: "
         + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
+    for u in (s.get("unscored_pairs") or [])[:3]:
+        lines.append(
+            f"{u['pair']}: no ground truth: not scored; clique of {u['clique_size']}, {u['pose_inliers']} of "
+            f"{u['n_in']} correspondences within the inlier threshold; estimated pose (source -> target, "
+            f"{u['pose_file']}):"
+        )
+        lines += ["  " + " ".join(f"{v:12.6f}" for v in row) for row in u["pose"]]
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
         lines.append(f"failed x{info['count']}: {reason} ({pairs})")

@@ -136,7 +136,114 @@ def _read_kitti_bin(p: Path) -> np.ndarray:
             f"{p}: {size} bytes is not a multiple of 16; a KITTI .bin holds float32 rows "
             "(x, y, z, reflectance)"
         )
-    return np.fromfile(p, dtype="<f4").reshape(-1, 4)[:, :3].astype(np.float64)
+    xyz = np.fromfile(p, dtype="<f4").reshape(-1, 4)[:, :3]
+    # Another dtype read as float32 (int16, uint8 ...) gives mostly subnormal or absurd values, where a
+    # scan's non-zero coordinates are ordinary floats.
+    nonzero = xyz[xyz != 0]
+    odd = ~np.isfinite(nonzero) | (np.abs(nonzero) < 1e-30) | (np.abs(nonzero) > MAX_COORD)
+    if len(nonzero) and odd.mean() > 0.05:
+        raise InputError(
+            f"{p}: {100 * odd.mean():.0f}% of its coordinates are no plausible float32 values (subnormal, "
+            "non-finite or beyond 1e6); a KITTI .bin holds float32 rows (x, y, z, reflectance): is the file "
+            "another dtype (int16, float64)?"
+        )
+    return xyz.astype(np.float64)
+
+
+PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2,
+             "uint16": 2, "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4,
+             "double": 8, "float64": 8}  # fmt: skip
+
+
+def ply_header(p: Path) -> tuple[str, list[tuple[str, int, int | None]], int]:
+    """(format, [(element, count, bytes a row or None when it has list properties)], header bytes)."""
+    with open(p, "rb") as f:
+        head = f.read(1 << 16)
+    end = head.find(b"end_header")
+    if end < 0:
+        raise InputError(f"{p}: PLY header without end_header")
+    body = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
+    fmt, elements = "", []
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            fmt = words[1]
+        elif words[:1] == ["element"] and len(words) == 3:
+            try:
+                elements.append([words[1], int(words[2]), 0])
+            except ValueError:
+                raise InputError(f"{p}: PLY header line {line!r}: the count is not a number") from None
+        elif words[:1] == ["property"] and elements and elements[-1][2] is not None:
+            if words[1:2] == ["list"] or len(words) < 3 or words[1] not in PLY_SIZES:
+                elements[-1][2] = None
+            else:
+                elements[-1][2] += PLY_SIZES[words[1]]
+    return fmt, [tuple(e) for e in elements], body
+
+
+def check_ply_body(p: Path) -> int | None:
+    """The vertex count a PLY header declares (None: no vertex element); a body too short for the vertices
+    (a truncated file, which Open3D fills with uninitialised rows) is an InputError."""
+    fmt, elements, start = ply_header(p)
+    need_bytes = need_lines = 0
+    for name, count, row in elements:
+        need_lines += count  # ascii: a line a row
+        need_bytes = None if row is None or need_bytes is None else need_bytes + count * row
+        if name != "vertex":
+            continue
+        if fmt == "ascii":
+            with open(p, "rb") as f:
+                f.seek(start)
+                have = sum(1 for line in f if line.strip())
+            if have < need_lines:
+                raise InputError(
+                    f"{p}: truncated: its header declares {count} vertices, the file has {have} data lines"
+                )
+        elif need_bytes is not None and (have := p.stat().st_size - start) < need_bytes:
+            raise InputError(
+                f"{p}: truncated: its header declares {count} vertices ({need_bytes} bytes of body up to "
+                f"them), the file has {have} bytes after the header"
+            )
+        return count
+    return None
+
+
+def check_pcd_body(p: Path) -> int | None:
+    """The point count a PCD header declares; a body too short for it (binary: bytes, ascii: lines) is an
+    InputError. binary_compressed bodies are left to Open3D (their size is not fixed by the header)."""
+    with open(p, "rb") as f:
+        head = f.read(1 << 16)
+    fields: dict[str, list[str]] = {}
+    pos = 0
+    for raw in head.split(b"\n"):
+        pos += len(raw) + 1
+        words = raw.decode("ascii", errors="replace").split()
+        if words and not words[0].startswith("#"):
+            fields[words[0].upper()] = words[1:]
+        if words[:1] == ["DATA"]:
+            break
+    else:
+        return None
+    try:
+        points = int(fields["POINTS"][0])
+        row = sum(int(a) * int(b) for a, b in zip(fields["SIZE"], fields.get("COUNT", ["1"] * 99)))
+    except (KeyError, IndexError, ValueError):
+        return None
+    kind = fields["DATA"][0].lower() if fields["DATA"] else ""
+    if kind == "binary" and (have := p.stat().st_size - pos) < points * row:
+        raise InputError(
+            f"{p}: truncated: its header declares {points} points ({points * row} bytes), the file has "
+            f"{have} bytes after the header"
+        )
+    if kind == "ascii":
+        with open(p, "rb") as f:
+            f.seek(pos)
+            have = sum(1 for line in f if line.strip())
+        if have < points:
+            raise InputError(
+                f"{p}: truncated: its header declares {points} points, the file has {have} lines"
+            )
+    return points
 
 
 def _read_o3d(p: Path) -> np.ndarray:
@@ -147,10 +254,15 @@ def _read_o3d(p: Path) -> np.ndarray:
             f"{p}: not a PLY file (it does not start with 'ply'); "
             "for headerless 'x y z' text use the .xyz or .txt extension"
         )
+    declared = check_ply_body(p) if p.suffix.lower() == ".ply" else check_pcd_body(p)
     from fastmac_exp._open3d import o3d
 
     pcd = o3d.io.read_point_cloud(str(p))
     pts = np.asarray(pcd.points, dtype=np.float64)
+    if declared is not None and len(pts) != declared:
+        raise InputError(
+            f"{p}: its header declares {declared} vertices, {len(pts)} could be read (truncated?)"
+        )
     if len(pts) == 0 and p.stat().st_size > 0:
         raise InputError(
             f"{p}: Open3D read no points; is it a valid {p.suffix.lower()[1:].upper()} point cloud?"

@@ -33,18 +33,24 @@ MAC_STAGES = STAGES[1:-1]  # what `total` sums: sampling and MAC's four stages
 
 
 def summarize(table: pd.DataFrame) -> dict:
-    """RR over all pairs (failed pairs count as not registered), RE/TE means over successful pairs,
-    median time per stage (ms)."""
+    """RR over the pairs with GT (failed pairs count as not registered; a pair without GT is not scored),
+    RE/TE means over successful pairs, median time per stage (ms)."""
     n = len(table)
     if n == 0:
         return {"pairs": 0, "failed": 0, "RR": float("nan")}
     ok = table["success"].fillna(False).astype(bool)
-    failed = int(table["error"].fillna("").astype(str).ne("").sum()) if "error" in table else 0
+    errors = (
+        table["error"].fillna("").astype(str).ne("") if "error" in table else pd.Series(False, table.index)
+    )
+    unscored = int((table["success"].isna() & ~errors).sum())
+    scored = n - unscored
     out = {
         "pairs": n,
-        "failed": failed,
+        "failed": int(errors.sum()),
         "registered": int(ok.sum()),
-        "RR": float(ok.mean()),
+        "scored": scored,
+        "unscored": unscored,
+        "RR": float(ok.sum() / scored) if scored else float("nan"),
         "RE_deg": float(table.loc[ok, "re_deg"].mean()) if ok.any() else float("nan"),
         "TE_cm": float(table.loc[ok, "te_cm"].mean()) if ok.any() else float("nan"),
         "inlier_ratio_in": float(table["inlier_ratio_in"].mean())

@@ -19,6 +19,7 @@ from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.metrics import pose_errors
+from fastmac_exp.offset import common_offset, describe_moved, moved_pair, to_original, translate
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.row import PairRow
 from fastmac_exp.samplers import Sampler, SampleResult
@@ -83,8 +84,13 @@ def run_pair(
         inliers_in=int(corr.labels.sum()) if corr.labels is not None else None,
         inlier_ratio_in=corr.inlier_ratio,
     )
+    # georeferenced pairs register and are judged in a frame at the pair's centre (TE at the scene, not at
+    # the frame's far origin); the row's pose is the original frame's
+    clouds = pair.src_cloud is not None and pair.tgt_cloud is not None
+    offset = common_offset(pair.src_cloud, pair.tgt_cloud) if clouds else common_offset(corr.src, corr.tgt)
+    work = translate(corr, -offset) if offset.any() else corr
     result, sample = register_correspondences(
-        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
+        work, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
@@ -96,6 +102,7 @@ def run_pair(
         inlier_ratio_kept=float(kept_labels.mean()) if kept_labels is not None else np.nan,
         clique_size=len(result.clique),
         clique_inliers=int(corr.labels[result.clique].sum()) if corr.labels is not None else None,
+        pose_inliers=result.inliers,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -106,11 +113,20 @@ def run_pair(
         cap_hit=result.cap_hit,
         zero_filled=sample.zero_filled,
     )
-    verdict = evaluate(pair, result, protocol)
+    verdict = evaluate(moved_pair(pair, offset), result, protocol)
     row.set(re_deg=verdict.re_deg, te_cm=verdict.te_cm, success=verdict.success)
+    if offset.any():
+        result.pose = to_original(result.pose, offset)
+        result.pose_unrefined = to_original(result.pose_unrefined, offset)
     row.timings = {"describe": describe_ms, **result.timings}
-    row.pose = " ".join(f"{v:.9g}" for v in result.pose.ravel())
+    row.pose = " ".join(f"{v:.17g}" for v in result.pose.ravel())  # exact: georeferenced poses are ~1e6
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
+
+
+def pose_inliers(corr: Correspondences, pose: np.ndarray, threshold: float) -> int:
+    """How many correspondences the pose maps to within `threshold` of their target point."""
+    residual = np.linalg.norm(corr.src @ pose[:3, :3].T + pose[:3, 3] - corr.tgt, axis=1)
+    return int((residual < threshold).sum())
 
 
 def describe(
@@ -129,7 +145,7 @@ def describe(
         corr, describe_ms = cached
         return corr, describe_ms, True
     t0 = time.perf_counter()
-    corr = descriptor(pair, rng)
+    corr = describe_moved(descriptor, pair, rng)
     describe_ms = (time.perf_counter() - t0) * 1e3
     if cache is not None and cache_key:
         cache.save(cache_key, corr, describe_ms)
@@ -155,12 +171,18 @@ def register_correspondences(
     """
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()
+    offset = common_offset(corr.src, corr.tgt)  # georeferenced input: work near the origin
+    work = translate(corr, -offset) if offset.any() else corr
     t0 = time.perf_counter()
-    sample = sampler.sample(corr, ratio, sample_graph or params.graph, family, rng, samples=samples)
+    sample = sampler.sample(work, ratio, sample_graph or params.graph, family, rng, samples=samples)
     kept = sample.indices
-    result = backend.register(corr.subset(kept), params)
+    result = backend.register(work.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
-    check_not_degenerate(corr.src[kept][result.clique], corr.tgt[kept][result.clique])
+    check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
+    result.inliers = pose_inliers(work, result.pose, params.inlier_threshold)
+    if offset.any():
+        result.pose = to_original(result.pose, offset)
+        result.pose_unrefined = to_original(result.pose_unrefined, offset)
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores

@@ -110,6 +110,10 @@ def plot_sampling(
                 ax.set_ylim(-3, 103)
             else:
                 ax.set_ylim(bottom=0)
+                if not g[metric].notna().any():  # RE/TE are means over successful pairs
+                    ax.set_yticks([])  # no empty 0-0.05 scale
+                    ax.text(0.5, 0.5, "no successful pair", transform=ax.transAxes, ha="center",
+                            va="center", fontsize=11, color="0.4")  # fmt: skip
             ax.set_title(f"{panel}: {label}" if panel else label, fontsize=10)
         axes[row, 0].legend(fontsize=8, loc="best")
     _suptitle(fig, title)

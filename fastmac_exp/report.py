@@ -202,12 +202,14 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 
 
 def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: int) -> list[Path]:
-    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files, first runs first), for a machine
-    with no display to open the recordings on; `out_dir/pairs/<run>/<pair>.png`."""
+    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files, first runs first; in a run the
+    pairs that failed first, then the worst RE), for a machine with no display to open the recordings
+    on; `out_dir/pairs/<run>/<pair>.png`."""
     if max_pairs <= 0:
         return []
     try:
-        from fastmac_exp.trackers.rerun_snapshot import snapshot_recording
+        from fastmac_exp.trackers.rerun_snapshot import read_pairs, render_pair
+        from fastmac_exp.trackers.rerun_tracker import recording_parts, safe_name
     except ImportError as exc:  # rerun-sdk missing: tables and plots still come
         log.warning("no pair snapshots: %s", exc)
         return []
@@ -217,14 +219,25 @@ def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: in
         rows = table[table["run"] == run]
         titles = {str(r["pair"]): _pair_title(r) for _, r in rows.iterrows()}
         sub = out_dir / "pairs" if run == "." else out_dir / "pairs" / run
-        for rrd in [run_dir / "recording.rrd", *sorted((run_dir / "rerun").glob("*.rrd"))]:
-            if len(written) >= max_pairs or not rrd.is_file():
-                continue
+        geos = []
+        for rrd in [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]:
             try:
-                written += snapshot_recording(rrd, sub, max_pairs - len(written), titles)
+                geos += read_pairs(rrd)
             except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
                 log.warning("no snapshot of %s: %s", rrd, exc)
+        rank = {pair: k for k, pair in enumerate(worst_first(rows))}
+        geos.sort(key=lambda g: rank.get(g.name, len(rank)))
+        for geo in geos[: max(0, max_pairs - len(written))]:
+            written.append(render_pair(geo, sub / f"{safe_name(geo.name)}.png", titles.get(geo.name, "")))
     return written
+
+
+def worst_first(rows: pd.DataFrame) -> list[str]:
+    """The pairs a researcher wants to see first: not registered, then by RE, largest first."""
+    ok = rows["success"].fillna(False).astype(bool).to_numpy()
+    re = pd.to_numeric(rows["re_deg"], errors="coerce").fillna(np.inf).to_numpy()
+    order = sorted(range(len(rows)), key=lambda k: (ok[k], -re[k]))
+    return [str(rows["pair"].iloc[k]) for k in order]
 
 
 def _pair_title(r: pd.Series) -> str:

@@ -29,7 +29,10 @@ def mesh_resolution(points: np.ndarray) -> float:
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
         raise InputError(f"mesh resolution needs an (N >= 2, 3) cloud, got shape {pts.shape}")
-    d, _ = cKDTree(pts).query(pts, k=2, workers=-1)
+    # one thread: scipy's threaded query (workers=-1) joins its threads in Python, where a Ctrl-C raises
+    # KeyboardInterrupt while they still write into the result: a segfault (5 of 6 Ctrl-C's during a run);
+    # 43 ms instead of 34 on a 38k-point scan
+    d, _ = cKDTree(pts).query(pts, k=2, workers=1)
     return float(d[:, 1].mean())
 
 

@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,8 @@ LOG_NAME = "results.jsonl"
 COLUMNS = [
     "index", "dataset", "pair", "scene", "family", "descriptor", "sampler", "ratio", "backend", "seed",
     "protocol", "resolution", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept",
-    "clique_size", "clique_inliers", "re_deg", "te_cm", "success", "score", "n_edges", "n_cliques",
-    "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms",
+    "clique_size", "clique_inliers", "pose_inliers", "re_deg", "te_cm", "success", "score", "n_edges",
+    "n_cliques", "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms",
     "t_sampling_ms", "t_graph_ms", "t_cliques_ms", "t_selection_ms", "t_pose_ms", "t_total_ms", "error",
     "pose",
 ]  # fmt: skip
@@ -58,6 +59,12 @@ class ResultsLog:
             os.fsync(f.fileno())
         os.replace(tmp, self.path)
 
+    def check_writable(self) -> None:
+        """OSError now, not at the first finished pair, when rows cannot be appended to an existing log."""
+        if self.path.exists():
+            with open(self.path, "a"):
+                pass
+
     def done(self) -> set[str]:
         return {str(r["pair"]) for r in self.rows}
 
@@ -81,6 +88,26 @@ class ResultsLog:
         except (ImportError, ValueError) as exc:  # pragma: no cover - pyarrow is a dependency
             log.warning("could not write parquet: %s", exc)
         return table
+
+
+POSES_DIR = "poses"
+
+
+def pose_file(run_dir: Path, pair: str) -> Path:
+    """Where a pair without GT keeps its estimated pose: a 4x4 text file, the format dataset.gt reads."""
+    return Path(run_dir) / POSES_DIR / (re.sub(r"[^A-Za-z0-9._+-]", "_", pair) + ".txt")
+
+
+def write_pose(run_dir: Path, row: dict[str, Any]) -> Path:
+    path = pose_file(run_dir, str(row["pair"]))
+    path.parent.mkdir(exist_ok=True)
+    np.savetxt(path, pose_matrix(row["pose"]), fmt="%.17g")
+    return path
+
+
+def pose_matrix(pose: str) -> np.ndarray:
+    """The results row's `pose` (16 numbers, row-major) as a 4x4 array."""
+    return np.array([float(v) for v in str(pose).split()]).reshape(4, 4)
 
 
 def read_rows(path: Path) -> list[dict[str, Any]]:

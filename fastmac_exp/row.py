@@ -54,6 +54,7 @@ class PairRow:
     inlier_ratio_kept: Any = UNSET
     clique_size: Any = UNSET
     clique_inliers: Any = UNSET
+    pose_inliers: Any = UNSET  # correspondences within the inlier threshold under the pose: a confidence
     score: Any = UNSET
     n_edges: Any = UNSET
     n_cliques: Any = UNSET

@@ -137,6 +137,14 @@ class RegistrationResult:
     search_nodes: int = 0  # branch-and-bound search-tree nodes (0 for the enumeration)
     timings: dict[str, float] = field(default_factory=dict)
     scores: np.ndarray | None = None  # per-node sampling scores over the input, if a sampler ran
+    # what a user without GT can judge the pose by: the input correspondences the pose maps within the
+    # inlier threshold (a right pose has many more than the clique; unrelated clouds about the clique's)
+    inliers: int = 0
+    error: str = ""  # register(): why no pose could be found ("" = a pose); then pose is all NaN
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
 
 
 @dataclass

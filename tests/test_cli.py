@@ -21,12 +21,38 @@ def run(*overrides: str, tmp: Path) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
 
 
+def _not_clouds(tmp: Path, *names: str) -> list[Path]:
+    """Files that exist (so the run starts) but fail when a pair reads them."""
+    paths = [tmp / n for n in names]
+    for p in paths:
+        p.write_text("not a point cloud\n")
+    return paths
+
+
 def test_every_pair_failed_exits_non_zero_and_says_why(tmp_path):
-    p = run("dataset=pairs", "dataset.source=nosuch_a.ply", "dataset.target=nosuch_b.ply", tmp=tmp_path)
+    a, b = _not_clouds(tmp_path, "a.xyz", "b.xyz")
+    p = run("dataset=pairs", f"dataset.source={a}", f"dataset.target={b}", tmp=tmp_path)
     assert p.returncode == 1, p.stderr[-2000:]
     out = p.stdout + p.stderr
-    assert "failed x1: InputError: point cloud file not found: nosuch_a.ply" in out
+    assert f"failed x1: InputError: {a}, line 1: 'not' is not a number" in out
     assert "every pair failed" in out
+
+
+def test_a_missing_input_file_is_refused_before_the_run_starts(tmp_path):
+    """A missing file is a config error (exit 2, its absolute path, no run directory), not a failed pair."""
+    (b,) = _not_clouds(tmp_path, "b.xyz")
+    p = run("dataset=pairs", "dataset.source=nosuch_a.ply", f"dataset.target={b}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert f"dataset.source: no such file: {REPO / 'nosuch_a.ply'}" in out
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_unknown_option_value_is_refused_before_the_run_starts(tmp_path):
+    p = run("mac.search=bnbb", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "mac.search must be one of auto, bnb, enumerate, got 'bnbb'" in out
+    assert not (tmp_path / "run").exists()
 
 
 def test_config_value_errors_exit_2_with_our_message(tmp_path):
@@ -48,23 +74,34 @@ def sweep(*overrides: str, sweep_dir: Path) -> subprocess.CompletedProcess:
 
 
 def test_a_sweep_goes_on_past_a_member_whose_pairs_all_failed_and_resumes_with_auto(tmp_path):
-    """A sweep member in which every pair fails (here: missing files) is a measurement, not the end of the
-    sweep; rerunning the same sweep into the same directory needs resume=auto and keeps every row once."""
+    """A sweep member in which every pair fails (here: files that are no clouds) is a measurement, not the
+    end of the sweep; rerunning the same sweep into the same directory needs resume=auto and keeps every
+    row once."""
     import pandas as pd
 
-    args = ("dataset=pairs", "dataset.source=nosuch_a.ply,nosuch_b.ply", "dataset.target=nosuch_c.ply")
-    first = sweep(*args, sweep_dir=tmp_path)
+    (tmp_path / "in").mkdir()
+    a, b, c = _not_clouds(tmp_path / "in", "a.xyz", "b.xyz", "c.xyz")
+    # absolute paths in the members' names would make directories of their slashes: number them instead
+    args = (
+        "dataset=pairs",
+        f"dataset.source={a},{b}",
+        f"dataset.target={c}",
+        "hydra.sweep.subdir=${hydra.job.num}",
+    )
+    first = sweep(*args, sweep_dir=tmp_path / "sweep")
     assert first.returncode == 0, first.stderr[-2000:]
-    members = sorted(p.parent for p in tmp_path.glob("*/results.jsonl"))
+    members = sorted(p.parent for p in (tmp_path / "sweep").glob("*/results.jsonl"))
     assert len(members) == 2  # the second member ran after the first one failed on every pair
-    again = sweep(*args, sweep_dir=tmp_path)
+    again = sweep(*args, sweep_dir=tmp_path / "sweep")
     assert again.returncode != 0 and "already holds results" in again.stdout + again.stderr
-    resumed = sweep(*args, "resume=auto", sweep_dir=tmp_path)
+    resumed = sweep(*args, "resume=auto", sweep_dir=tmp_path / "sweep")
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    assert sorted(p.parent for p in tmp_path.glob("*/results.jsonl")) == members  # no new directories
+    assert (
+        sorted(p.parent for p in (tmp_path / "sweep").glob("*/results.jsonl")) == members
+    )  # no new directories
     for m in members:
         rows = pd.read_csv(m / "results.csv")
-        assert len(rows) == 1 and rows["error"].str.contains("point cloud file not found").all()
+        assert len(rows) == 1 and rows["error"].str.contains("is not a number").all()
 
 
 def test_a_launcher_without_its_plugin_names_the_package(tmp_path):
@@ -101,7 +138,8 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
     out = p.stdout
     assert out.startswith("fastmac-exp: FastMAC")
     for line in ("sampler: allpass,", "method: fastmac20,", "experiment: descriptor_robustness,",
-                 "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05"):  # fmt: skip
+                 "hydra/launcher (sweeps): local", "python run.py sampler=highpass ratio=0.05",
+                 "limit (the first N pairs; null = all)"):  # fmt: skip
         assert line in out, line
     assert "Powered by Hydra" not in out  # not Hydra's generic text
 
@@ -129,7 +167,7 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     p = run("sampler=none", "limit=1", _default_run_dir(runs), tmp=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     (made,) = runs.iterdir()
-    assert made.name.endswith("_synthetic_fpfh_none_1.0"), made.name
+    assert made.name.endswith("_synthetic-3dmatch_fpfh_none_1.0"), made.name
     # a config error and a resume= run leave no directory of their own
     bad = run("dataset.family=kiti", _default_run_dir(runs), tmp=tmp_path)
     assert bad.returncode == 2
@@ -139,12 +177,65 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     assert list(made.glob("run.resumed-*.log"))  # the resumed run's log went with its results
 
 
+def test_run_names_and_the_header_say_the_family_and_a_backend_other_than_cpp(tmp_path):
+    runs = tmp_path / "runs"
+    p = run("dataset.family=kitti", "backend=python", "limit=1", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    assert made.name.endswith("_synthetic-kitti_fpfh_highpass_0.2_python"), made.name
+    assert (
+        "dataset=synthetic family=kitti descriptor=fpfh sampler=highpass ratio=0.2 backend=python" in p.stdout
+    )
+
+
 def test_a_key_typo_gets_the_closest_key_not_a_plus_suggestion(tmp_path):
     p = run("dataset.famly=kitti", tmp=tmp_path)
     out = p.stdout + p.stderr
     assert p.returncode == 2
     assert "unknown config key 'dataset.famly'; did you mean 'dataset.family'?" in out
     assert "+dataset.famly" not in out
+    for typo in ("+ratoi=0.1", "ratoi=0.1"):  # Hydra itself suggests the `+` form, which adds an unused key
+        p = run(typo, tmp=tmp_path)
+        out = p.stdout + p.stderr
+        assert p.returncode == 2 and "unknown config key 'ratoi'; did you mean 'ratio'?" in out, out[-2000:]
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_keys_are_checked_before_the_run_starts(tmp_path):
+    for override, message in [
+        ("seed=abc", "seed must be a whole number >= 0, got 'abc' (config key: seed)"),
+        ("seed=1.5", "seed must be a whole number >= 0, got 1.5"),
+        ("seed=-1", "seed must be a whole number >= 0, got -1"),
+        ("limit=abc", "limit must be >= 1 (null = every pair), got 'abc' (config key: limit)"),
+        ("workers=0", "workers must be a whole number >= 1, got 0 (config key: workers)"),
+        ("mac.max_nodes=abc", "graph/mac override of the wrong type"),
+    ]:
+        p = run(override, tmp=tmp_path)
+        out = p.stdout + p.stderr
+        assert p.returncode == 2 and message in out and "Traceback" not in out, (override, out[-2000:])
+    assert not (tmp_path / "run").exists()
+
+
+def test_workers_are_capped_at_the_pairs_to_run(tmp_path):
+    p = run("workers=64", "limit=2", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "workers=64: 2 pair(s) to run, so 2 worker(s)" in p.stdout + p.stderr
+
+
+def test_an_unwritable_run_directory_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    p = run("limit=1", f"hydra.run.dir={blocker / 'run'}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out, out[-2000:]
+    assert f"cannot write the run directory {blocker / 'run'}" in out
+    done = tmp_path / "done"
+    assert run("limit=1", f"hydra.run.dir={done}", tmp=tmp_path).returncode == 0
+    (done / "results.jsonl").rename(done / "moved.jsonl")
+    (done / "results.jsonl").mkdir()  # what a resume cannot append to (root ignores permission bits)
+    p = run("limit=2", f"resume={done}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "Traceback" not in out and f"cannot write in {done}" in out, out[-2000:]
 
 
 def test_parallel_sweep_members_print_whole_summaries(tmp_path):
@@ -152,7 +243,9 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
     p = sweep("hydra/launcher=local", "sampler=highpass,random", "limit=1", sweep_dir=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     lines = p.stdout.splitlines()
-    starts = [i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic descriptor=fpfh")]
+    starts = [
+        i for i, ln in enumerate(lines) if ln.startswith("dataset=synthetic family=3dmatch descriptor=fpfh")
+    ]
     assert len(starts) == 2
     for i in starts:  # the block's lines follow each other, each one whole
         assert lines[i + 1].startswith("pairs: 1  registered:")
@@ -161,6 +254,13 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
         while lines[j].startswith("failed x"):  # a failed pair's reason, if any
             j += 1
         assert lines[j].startswith("results: ")
+    # the sweep ends with one table of its members and the command to run next
+    table = p.stdout[p.stdout.index(f"sweep {tmp_path}:") :].splitlines()
+    assert table[1].split() == ["member", "pairs", "RR", "%", "RE", "deg", "TE", "cm", "ms", "failed"]
+    assert table[2].startswith("0_limit=1,sampler=highpass") and table[3].startswith(
+        "1_limit=1,sampler=random"
+    )
+    assert table[4] == f"next: python -m fastmac_exp.report {tmp_path}"
 
 
 def test_the_package_finds_its_configs_and_models_without_the_repository_layout(tmp_path):
@@ -195,3 +295,41 @@ def test_samples_keeps_a_count_and_the_row_says_which_scores_ran(tmp_path):
     assert bad.returncode == 2 and "samples must be" in bad.stdout + bad.stderr
     bad = run("sampler.scores=approx", tmp=tmp_path / "bad2")
     assert bad.returncode == 2 and "sampler.scores must be one of" in bad.stdout + bad.stderr
+
+
+def _blob_pair(tmp: Path) -> tuple[Path, Path, np.ndarray]:
+    """A bumpy closed surface (FPFH finds matches on it) and the same surface under a known pose."""
+    from fastmac_exp.transforms import random_rotation
+
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(0, 2 * np.pi, 8000), rng.uniform(0, np.pi, 8000)
+    r = 1.5 + 0.3 * np.sin(3 * u) * np.sin(2 * v)
+    pts = np.stack([r * np.cos(u) * np.sin(v), r * np.sin(u) * np.sin(v), r * np.cos(v)], 1)
+    gt = np.eye(4)
+    gt[:3, :3], gt[:3, 3] = random_rotation(rng), [0.3, -0.2, 0.1]
+    np.save(tmp / "src.npy", pts)
+    np.save(tmp / "tgt.npy", pts @ gt[:3, :3].T + gt[:3, 3])
+    return tmp / "src.npy", tmp / "tgt.npy", gt
+
+
+def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path):
+    """No GT: not a failure; the summary prints the estimated pose with its confidence and writes it as a
+    4x4 file that dataset.gt reads back (the pair then registers against it exactly)."""
+    from fastmac_exp.io import read_matrix
+    from fastmac_exp.metrics import pose_errors
+
+    src, tgt, gt = _blob_pair(tmp_path)
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = p.stdout
+    assert "pairs: 1  no ground truth (not scored): 1  failed with an error: 0" in out
+    assert "RR: no ground truth: not scored" in out and "RR: 0.0%" not in out
+    pose_path = tmp_path / "run" / "poses" / "src+tgt.txt"
+    assert "src+tgt: no ground truth: not scored; clique of " in out
+    assert f"source -> target, {pose_path}):" in out
+    pose = read_matrix(pose_path)
+    assert pose_errors(pose, gt, 5.0, 0.1).success  # the estimate is the right one
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", f"dataset.gt={pose_path}",
+            tmp=tmp_path / "again")  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "pairs: 1  registered: 1 of 1  failed with an error: 0" in p.stdout

@@ -425,6 +425,17 @@ def test_clique_caps_are_recorded():
     assert res.cap_hit == "max_nodes=2" and res.search == "bnb"
 
 
+@pytest.mark.parametrize("bad", [np.inf, np.nan, 0.0, -1.0])
+def test_selection_refuses_non_finite_or_non_positive_weights(bad):
+    """An infinite weight would make the branch and bound's dominance rule disagree with the enumeration."""
+    i, j = er_edges(30, 0.3, 0)
+    w = np.ones(len(i))
+    w[3] = bad
+    for search in ("enumerate", "bnb"):
+        with pytest.raises(ValueError, match=r"finite and positive \(edge 3\)"):
+            core.select_cliques(30, i, j, w, 3, search=search)
+
+
 @pytest.mark.parametrize("seed", range(12))
 def test_node_guided_selection_equals_reference_with_ties(seed):
     """Integer weights make many cliques exactly as heavy: ties go to the canonically earliest clique."""

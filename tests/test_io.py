@@ -78,6 +78,60 @@ def test_read_points_errors(tmp_path):
         io.read_points(tmp_path / "flat.npy")
 
 
+def _cut(path, keep_bytes_of_body: int) -> None:
+    """Truncate a PLY's body after `keep_bytes_of_body` bytes (the header stays whole)."""
+    data = path.read_bytes()
+    start = data.index(b"end_header") + len(b"end_header\n")
+    path.write_bytes(data[: start + keep_bytes_of_body])
+
+
+def test_a_truncated_binary_ply_is_refused_with_its_name(tmp_path):
+    """5,000 vertices declared, 1,000 present: Open3D would fill the rest with uninitialised rows."""
+    from fastmac_exp._open3d import o3d
+
+    pts = np.random.default_rng(0).uniform(-3, 3, (5000, 3))
+    path = tmp_path / "cut.ply"
+    o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    np.testing.assert_allclose(io.read_points(path), pts)  # whole: read as written
+    assert io.check_ply_body(path) == 5000
+    _cut(path, 1000 * 3 * 8)
+    with pytest.raises(InputError, match=r"cut\.ply: truncated: its header declares 5000 vertices"):
+        io.read_points(path)
+    ascii_path = tmp_path / "cut_ascii.ply"
+    o3d.io.write_point_cloud(
+        str(ascii_path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), write_ascii=True
+    )
+    text = ascii_path.read_text().splitlines()
+    ascii_path.write_text("\n".join(text[: len(text) - 4000]) + "\n")
+    with pytest.raises(InputError, match=r"cut_ascii\.ply: truncated: .* 5000 vertices, .* 1000 data lines"):
+        io.read_points(ascii_path)
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+def test_a_truncated_pcd_is_refused_with_its_name(tmp_path, ascii):
+    from fastmac_exp._open3d import o3d
+
+    pts = np.random.default_rng(0).uniform(-3, 3, (5000, 3))
+    path = tmp_path / "cut.pcd"
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    o3d.io.write_point_cloud(str(path), pcd, write_ascii=ascii, compressed=False)
+    np.testing.assert_allclose(io.read_points(path), pts, atol=1e-5)
+    assert io.check_pcd_body(path) == 5000
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 3 // 10])
+    with pytest.raises(InputError, match=r"cut\.pcd: truncated: its header declares 5000 points"):
+        io.read_points(path)
+
+
+def test_a_bin_of_another_dtype_is_refused_with_the_dtype_advice(tmp_path):
+    scan = np.random.default_rng(0).uniform(-40, 40, (1000, 4)).astype("<f4")
+    scan.tofile(tmp_path / "ok.bin")
+    np.testing.assert_allclose(io.read_points(tmp_path / "ok.bin"), scan[:, :3])
+    (scan * 100).astype("<i2").tofile(tmp_path / "int16.bin")  # 8,000 bytes: a multiple of 16
+    with pytest.raises(InputError, match=r"int16\.bin: .* no plausible float32 values.*another dtype"):
+        io.read_points(tmp_path / "int16.bin")
+
+
 def test_clean_cloud_drops_invalid_and_rejects_absurd(cloud):
     pts = cloud.copy()
     pts[3] = np.nan

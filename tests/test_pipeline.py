@@ -12,11 +12,14 @@ from omegaconf import OmegaConf
 from fastmac_exp.api import register
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.descriptors.base import Descriptor  # noqa: F401 - interface import must work
+from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
+from fastmac_exp.errors import InputError
 from fastmac_exp.experiment import run_experiment
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.results import COLUMNS, load_table
 from fastmac_exp.samplers import GraphFilterSampler, NoSampler
+from fastmac_exp.types import Correspondences
 from tests.conftest import make_correspondences
 
 
@@ -36,6 +39,34 @@ def test_library_register_on_correspondences():
     corr, gt = make_correspondences(n=600, inlier_ratio=0.1, seed=12)
     res = register(corr, sampler="highpass", ratio=0.5, backend="python", seed=1)
     assert np.allclose(res.pose, gt, atol=0.05)
+
+
+def test_library_register_flags_what_it_cannot_trust_instead_of_raising():
+    """No pose found (FastMAC@5 on 1,000 outliers keeps 50 with no second-order edge): a result flagged as
+    failed. A pose of unrelated clouds maps about its clique's size within the inlier threshold, a right
+    one far more: `inliers` says which."""
+    corr, _ = make_correspondences(n=1000, inlier_ratio=0.0, seed=0)
+    res = register(corr, sampler="random", ratio=0.05)
+    assert not res.ok and "no second-order edge" in res.error and np.isnan(res.pose).all()
+    good, gt = make_correspondences(n=1000, inlier_ratio=0.1, seed=1)
+    res = register(good, ratio=0.2)
+    assert res.ok and res.inliers == 100 and np.allclose(res.pose, gt, atol=0.05)
+    rng = np.random.default_rng(0)
+    unrelated = register(rng.uniform(0, 3, (20000, 3)), rng.uniform(0, 3, (20000, 3)), voxel_size=0.05)
+    assert unrelated.ok and unrelated.inliers <= 2 * len(unrelated.clique)
+
+
+def test_library_register_refuses_bad_input_with_what_is_wrong():
+    pts = np.random.default_rng(0).uniform(0, 3, (500, 3))
+    with pytest.raises(InputError, match=r"source must be an \(N, 3\) array of points, got shape \(5,\)"):
+        register(np.zeros(5), pts)
+    with pytest.raises(InputError, match="voxel_size must be positive or None"):
+        register(pts, pts, voxel_size=0.0)
+    for n in (0, 1, 2):
+        with pytest.raises(
+            InputError, match=f"^{n} correspondence\\(s\\): a clique, and a pose, needs at least 3"
+        ):
+            register(Correspondences(pts[:n], pts[:n] + 1.0))
 
 
 def _cfg(tmp_path, **over):
@@ -177,3 +208,17 @@ def test_pair_row_keeps_what_was_measured_and_leaves_out_the_rest():
     assert list(row.to_dict())[-3:] == ["t_describe_ms", "t_total_ms", "pose"]
     with pytest.raises(AttributeError, match="no field 'n_kep'"):
         row.set(n_kep=3)
+
+
+class CostlyDescriptor(PrecomputedDescriptor):
+    cost_note = "about an hour a pair"
+
+
+def test_a_costly_descriptor_says_what_it_costs_when_the_run_starts(tmp_path, caplog):
+    from fastmac_exp.descriptors.buffer import BufferDescriptor
+
+    assert "minutes" in BufferDescriptor.cost_note and "19 min" in BufferDescriptor.cost_note
+    cfg = _cfg(tmp_path, descriptor={"_target_": "tests.test_pipeline.CostlyDescriptor"})
+    with caplog.at_level("WARNING", logger="fastmac_exp.experiment"):
+        run_experiment(cfg, tmp_path / "run")
+    assert any("about an hour a pair" in r.getMessage() for r in caplog.records)

@@ -225,3 +225,18 @@ def test_report_says_which_search_ran_and_how_many_pairs_were_capped(tmp_path):
     # without a search column the time table has no such columns
     plain = aggregate(pd.DataFrame(RUN_A))
     assert plain["searches"].tolist() == [""] and plain["capped"].tolist() == [0]
+
+
+def test_re_te_panels_say_when_no_pair_registered(tmp_path, monkeypatch):
+    from fastmac_exp.plots import plot_sampling
+
+    figs = _figures(monkeypatch)
+    rows = [
+        _row(i, "random", ratio, 0, False, np.nan, np.nan, 10.0, 20.0)
+        for ratio in (0.5, 0.1)
+        for i in range(3)
+    ]
+    plot_sampling(aggregate(pd.DataFrame(rows)), tmp_path / "s.png")
+    (fig,) = figs
+    texts = [[t.get_text() for t in ax.texts] for ax in fig.axes]
+    assert texts == [[], ["no successful pair"], ["no successful pair"]]  # RR, RE, TE

@@ -459,8 +459,37 @@ def test_report_writes_pair_snapshots(tmp_path, strict_rerun):
     log.write_tables()
     assert main([str(tmp_path), "--snapshots", "2", "--no-plots"]) == 0
     pairs = sorted(p.name for p in (tmp_path / "report" / "pairs").glob("*.png"))
-    assert pairs == ["p0.png", "p1.png"]
+    assert pairs == ["p1.png", "p2.png"]  # the worst RE first (p2: 0.3 deg, p1: 0.2, p0: 0.1)
     text = (tmp_path / "report" / "report.md").read_text()
-    assert "![p0](pairs/p0.png)" in text and "p1.png" in text and "p2.png" not in text
+    assert "![p2](pairs/p2.png)" in text and "p1.png" in text and "p0.png" not in text
     assert main([str(tmp_path), "--snapshots", "0", "--no-plots", "--out", str(tmp_path / "r0")]) == 0
     assert not (tmp_path / "r0" / "pairs").exists()
+
+
+def test_pairs_that_did_not_register_get_geometry_and_the_report_shows_them_first(tmp_path):
+    """max_pairs=2 over 5 pairs, the last one not registered: it is recorded (beyond the first two
+    registered ones) and its image is the report's first; then the worst RE."""
+    from fastmac_exp.report import pair_snapshots
+    from fastmac_exp.trackers.rerun_snapshot import read_pairs
+    from fastmac_exp.trackers.rerun_tracker import RerunTracker
+
+    outcomes = [make_outcome(i, f"p{i}") for i in range(5)]
+    outcomes[4].row.update(success=False, re_deg=40.0)
+    table, _ = run_tracker(RerunTracker(max_pairs=2, max_points=500), tmp_path, outcomes)
+    assert [g.name for g in read_pairs(tmp_path / "recording.rrd")] == ["p0", "p1", "p4"]
+    table["run"] = "."
+    pngs = pair_snapshots(tmp_path, table, tmp_path / "report", max_pairs=2)
+    assert [p.name for p in pngs] == ["p4.png", "p1.png"]  # not registered, then RE 0.2 before 0.1
+
+
+def test_a_sweep_member_records_the_geometry_of_one_pair_by_default(tmp_path, monkeypatch):
+    from fastmac_exp.trackers import rerun_tracker
+    from fastmac_exp.trackers.rerun_snapshot import read_pairs
+
+    monkeypatch.setattr(rerun_tracker, "in_multirun", lambda: True)
+    outcomes = [make_outcome(i, f"p{i}") for i in range(3)]
+    run_tracker(rerun_tracker.RerunTracker(max_pairs=4, max_points=200), tmp_path / "a", outcomes)
+    assert [g.name for g in read_pairs(tmp_path / "a" / "recording.rrd")] == ["p0"]
+    all_pairs = rerun_tracker.RerunTracker(max_pairs=4, max_points=200, sweep_max_pairs=None)
+    run_tracker(all_pairs, tmp_path / "b", outcomes)
+    assert [g.name for g in read_pairs(tmp_path / "b" / "recording.rrd")] == ["p0", "p1", "p2"]

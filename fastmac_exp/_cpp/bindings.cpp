@@ -227,8 +227,10 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
         for (int64_t e = 0; e < m; ++e) {
             const int64_t a = i.data()[e], b = j.data()[e];
             if (a == b) continue;
-            if (!(w.data()[e] > 0.0))
-                throw std::invalid_argument("edge weights must be positive (edge " + std::to_string(e) + ")");
+            // finite too: an infinite weight breaks the branch and bound's dominance rule (inf - inf)
+            if (!(w.data()[e] > 0.0) || !std::isfinite(w.data()[e]))
+                throw std::invalid_argument("edge weights must be finite and positive (edge " + std::to_string(e) +
+                                            ")");
             for (auto [x, y] : {std::pair<int64_t, int64_t>{a, b}, {b, a}}) {
                 auto first = g.col.begin() + g.ptr[x], last = g.col.begin() + g.ptr[x + 1];
                 vals[std::lower_bound(first, last, (int32_t)y) - g.col.begin()] = w.data()[e];

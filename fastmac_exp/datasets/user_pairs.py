@@ -125,6 +125,14 @@ class UserPairs:
     def names(self) -> list[str]:
         return [n for n, *_ in self._index()]
 
+    def check_inputs(self) -> None:
+        """Every named file exists (a run checks this before it starts, not pair by pair)."""
+        for _, *paths in self._index():
+            for key, path in zip(("source", "target", "gt"), paths):
+                if path is not None and (not path.exists() or path.is_dir()):
+                    what = "a directory, not a file" if path.exists() else "no such file"
+                    raise InputError(f"dataset.{key}: {what}: {path.resolve()}")
+
     def __len__(self) -> int:
         return len(self._index())
 

@@ -1,7 +1,9 @@
 """Rerun tracker: the pairs of a run as a Rerun recording (.rrd), for `rerun <file>.rrd`.
 
-per="run": one file, `<run_dir>/recording.rrd` (or `path`); per="pair": one file per recorded pair,
-`<run_dir>/rerun/<pair>.rrd` (or under the directory `path`). Nothing is spawned or served; data goes
+per="run": one file, `<run_dir>/recording.rrd` (or `path`), and one more for each resume of the run
+(`recording.part2.rrd`, ...: the earlier parts are never rewritten; `rerun <run_dir>/recording*.rrd`
+opens them all); per="pair": one file per recorded pair, `<run_dir>/rerun/<pair>.rrd` (or under the
+directory `path`). Nothing is spawned or served; data goes
 straight to the file through a private `rr.RecordingStream`.
 
 Entity layout (pair names are escaped with `rr.escape_entity_path_part`). A pair's geometry is static (it
@@ -36,7 +38,7 @@ Every line carries a hover label `#<correspondence id> <class> score <sampler sc
 set to the dataset's up axis (`up`, or the family's: +z for KITTI-like scans, -y for 3DMatch-like camera
 fragments). Clouds are downsampled to `max_points`; when a dataset has no clouds (precomputed
 correspondences) the correspondence end points stand in for them. Geometry is recorded for the first
-`max_pairs` successful pairs; scalars for all.
+`max_pairs` registered pairs and the first `max_pairs` that did not register; scalars for all.
 """
 
 from __future__ import annotations
@@ -173,6 +175,8 @@ class RerunTracker(Tracker):
     max_outlier_lines: the cap on GT-outlier lines among all correspondences (-1: no cap).
     radius: the point radius in scene units (lines scale from it); null = a fixed size on screen.
     up: the views' up axis ("+z", "-y", ...); null = the dataset family's.
+    sweep_max_pairs: max_pairs in a sweep member (the report shows a few pairs of a sweep; twenty members
+    recording as a single run does made 126 MB); None: max_pairs.
     """
 
     name = "rerun"
@@ -187,12 +191,14 @@ class RerunTracker(Tracker):
         radius: float | None = None,
         up: str | None = None,
         blueprint: bool = True,
+        sweep_max_pairs: int | None = 1,
     ) -> None:
         if per not in PER:
             raise ValueError(f"tracker.rerun.per must be one of {PER}, got {per!r}")
         up_axis(None, up)  # a bad value fails here, not at the first pair
         self.per = per
         self.max_pairs = int(max_pairs)
+        self.sweep_max_pairs = sweep_max_pairs
         self.path = path
         self.max_points = int(max_points)
         self.max_outlier_lines = int(max_outlier_lines)
@@ -205,6 +211,7 @@ class RerunTracker(Tracker):
         self._eyes: dict[str, dict[str, dict[str, Any]]] = {}  # root -> view -> EyeControls3D arguments
         self._n = 0
         self._n_ok = 0
+        self._n_geo_ok = self._n_geo_failed = 0  # pairs recorded with geometry
         self._run_dir: Path | None = None
         try:
             import rerun as rr
@@ -219,10 +226,17 @@ class RerunTracker(Tracker):
         if self._rr is None:
             return
         self._run_dir = Path(run_dir)
+        if self.sweep_max_pairs is not None and in_multirun() and self.sweep_max_pairs < self.max_pairs:
+            log.info("rerun: a sweep member records the geometry of %d pair(s) "
+                     "(tracker.rerun.sweep_max_pairs=null: as a run)", self.sweep_max_pairs)  # fmt: skip
+            self.max_pairs = int(self.sweep_max_pairs)
         if self.per == "run":
             target = Path(self.path) if self.path else Path("recording.rrd")
             target = target if target.is_absolute() else self._run_dir / target
-            self.rec = self._open(target, recording_name=self._run_dir.name)
+            parts = recording_parts(target)
+            name = self._run_dir.name + (f" (part {len(parts) + 1})" if parts else "")
+            target = part_path(target, len(parts) + 1)
+            self.rec = self._open(target, recording_name=name)
             log.info("rerun: recording to %s (view with `rerun %s`)", target, target)
 
     def _open(self, path: Path, recording_name: str):
@@ -319,7 +333,10 @@ class RerunTracker(Tracker):
         self._n += 1
         ok = _finite(row.get("success")) == 1.0
         self._n_ok += ok
-        want_geometry = outcome.corr is not None and len(self.recorded) < self.max_pairs
+        # the first max_pairs registered pairs and, beside them, up to max_pairs that did not register:
+        # the ones a researcher most wants to see
+        shown = self._n_geo_ok if ok else self._n_geo_failed
+        want_geometry = outcome.corr is not None and shown < self.max_pairs
         if self.per == "run":
             rec = self.rec
         elif want_geometry:
@@ -338,6 +355,10 @@ class RerunTracker(Tracker):
             root = "pairs/" + self._rr.escape_entity_path_part(str(row.get("pair", index)))
             self._log_geometry(rec, root, outcome)
             self.recorded.append(root)
+            if ok:
+                self._n_geo_ok += 1
+            else:
+                self._n_geo_failed += 1
             if self.per == "pair":
                 self._close(rec, [root])
 
@@ -448,6 +469,28 @@ class RerunTracker(Tracker):
         if self.rec is not None:
             rec, self.rec = self.rec, None
             self._close(rec, self.recorded)
+
+
+def in_multirun() -> bool:
+    """Whether this process runs a member of a Hydra sweep."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def part_path(path: Path, part: int) -> Path:
+    """The file of a recording's `part` (1: `path` itself; a resumed run records into `<stem>.partN.rrd`
+    beside the earlier parts, which stay as they are)."""
+    return path if part == 1 else path.with_name(f"{path.stem}.part{part}{path.suffix}")
+
+
+def recording_parts(path: str | Path) -> list[Path]:
+    """The existing files of a recording and of its resumed parts, in the order they were written."""
+    path, out = Path(path), []
+    while (p := part_path(path, len(out) + 1)).is_file():
+        out.append(p)
+    return out
 
 
 def scale_of(points: np.ndarray) -> float:

@@ -1,7 +1,8 @@
 """Weights & Biases tracker: one wandb run per experiment run, offline by default.
 
 Offline runs are written into the run directory (`<run_dir>/wandb/offline-run-*`) and need no network;
-upload them later with `wandb sync <run_dir>/wandb/offline-run-*`. Online:
+upload them later with `wandb sync <run_dir>/wandb/offline-run-*`. Each resume of a run adds one more
+offline run, named `<name> (part N)`, beside the earlier ones. Online:
 `python run.py tracker.wandb.mode=online tracker.wandb.project=P tracker.wandb.entity=E`.
 
 What is logged: the resolved config (plus the Hydra choices and overrides when run under Hydra); one
@@ -132,6 +133,9 @@ class WandbTracker(Tracker):
         if group is None and ctx.get("multirun") and ctx.get("sweep_dir"):
             group = Path(ctx["sweep_dir"]).name
         name = self.run_name or ctx.get("override_dirname") or run_dir.name
+        earlier = find_offline_runs(run_dir)  # a resumed run: each part is its own run, the earlier kept
+        if earlier:
+            name = f"{name} (part {len(earlier) + 1})"
         mode = self.mode
         if mode == "online" and not self._logged_in():
             log.warning(

@@ -1,0 +1,42 @@
+"""The run's own keys, checked before anything is created: a bad value is one InputError naming the key,
+not a coercion, a traceback or a failure of every pair."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from fastmac_exp.errors import InputError
+from fastmac_exp.params import mac_params_for
+from fastmac_exp.pipeline import PROTOCOLS
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def check_run_keys(cfg: DictConfig) -> None:
+    if cfg.get("protocol") not in PROTOCOLS:
+        raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.get('protocol')!r}")
+    ratio = cfg.get("ratio")
+    if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
+        raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
+    samples = cfg.get("samples")
+    if samples is not None and (not _is_int(samples) or samples < 3):
+        raise InputError(f"samples must be null or an integer >= 3, got {samples!r} (config key: samples)")
+    seed = cfg.get("seed")
+    if not _is_int(seed) or seed < 0:
+        raise InputError(f"seed must be a whole number >= 0, got {seed!r} (config key: seed)")
+    limit = cfg.get("limit")
+    if limit is not None and (not _is_int(limit) or limit < 1):
+        raise InputError(f"limit must be >= 1 (null = every pair), got {limit!r} (config key: limit)")
+    workers = cfg.get("workers", 1)
+    if not _is_int(workers) or workers < 1:
+        raise InputError(f"workers must be a whole number >= 1, got {workers!r} (config key: workers)")
+    graph = OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None
+    mac = OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None
+    try:  # the overrides' own rules; the family's rules are checked again per pair
+        mac_params_for("3dmatch", "fpfh", graph_overrides=graph, mac_overrides=mac)
+    except TypeError as exc:
+        raise InputError(f"graph/mac override of the wrong type: {exc}") from None

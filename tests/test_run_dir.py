@@ -1,0 +1,210 @@
+"""One experiment per run directory, as the console and the files on disk show it: the lock that keeps a
+second writer out, resume refusing another experiment, and Ctrl-C / SIGTERM ending a run cleanly."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fastmac_exp.results import read_rows
+from fastmac_exp.runlock import LOCK_NAME, RunLock
+from tests.test_cli import REPO, _default_run_dir, run
+
+
+def test_a_run_directory_held_by_a_live_run_is_refused_and_a_stale_lock_is_taken_over(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.yaml").write_text("ratio: 0.2\n")  # the holder is still starting: no results yet
+    with RunLock(run_dir):
+        p = run("limit=1", "sampler=random", "ratio=0.1", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert f"{run_dir} is in use by another run (pid {os.getpid()} on host {socket.gethostname()})" in out
+    # nothing written there: not even Hydra's .hydra/ and log, which would overwrite the holder's
+    assert [x.name for x in run_dir.iterdir()] == ["config.yaml"]
+    (run_dir / "config.yaml").unlink()
+    # a lock file whose process is gone (killed without releasing it) does not keep the directory
+    (run_dir / LOCK_NAME).write_text(json.dumps({"host": socket.gethostname(), "pid": 2**22 + 7}))
+    p = run("limit=1", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert len(read_rows(run_dir / "results.jsonl")) == 1 and not (run_dir / LOCK_NAME).exists()
+
+
+def test_the_experiment_takes_the_lock_itself_for_runs_that_start_together(tmp_path):
+    """The callback's early check cannot see a run that starts at the same instant: the experiment's own
+    lock is what keeps the second one out (library use included)."""
+    from fastmac_exp.experiment import run_experiment
+    from fastmac_exp.runlock import RunLocked
+    from tests.test_pipeline import _cfg
+
+    (tmp_path / "run").mkdir()
+    with RunLock(tmp_path / "run"):
+        with pytest.raises(RunLocked, match=f"pid {os.getpid()} on host"):
+            run_experiment(_cfg(tmp_path), tmp_path / "run")
+        with pytest.raises(RunLocked):
+            RunLock(tmp_path / "run").acquire()
+    assert not (tmp_path / "run" / "results.jsonl").exists()
+    _, summary = run_experiment(_cfg(tmp_path), tmp_path / "run")  # released: the next run goes ahead
+    assert summary["pairs"] == 4
+
+
+def test_resume_refuses_another_experiment_and_lists_what_differs(tmp_path):
+    first = tmp_path / "first"
+    p = run("limit=1", tmp=first)
+    assert p.returncode == 0, p.stderr[-2000:]
+    made = first / "run"
+    before = (made / "results.jsonl").read_text()
+    p = run("limit=1", f"resume={made}", "dataset.family=kitti", "ratio=0.1", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert "dataset.family: '3dmatch' (saved) vs 'kitti' (this command)" in out
+    assert "ratio: 0.2 (saved) vs 0.1 (this command)" in out and "drop resume= to start a new run" in out
+    p = run("limit=1", f"resume={made}", "sampler=random", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "sampler._target_: 'fastmac_exp.samplers.GraphFilterSampler' (saved)" in out
+    assert "sampler.filter" not in out  # another option of a group is one difference
+    p = run(f"resume={made}", "limit=1", "seed=1", tmp=tmp_path)
+    assert p.returncode == 2 and "seed: 0 (saved) vs 1 (this command)" in p.stdout + p.stderr
+    assert (made / "results.jsonl").read_text() == before  # nothing appended
+    assert not (tmp_path / "run").exists()  # and no directory of its own
+    # what cannot change a row may differ, and limit may grow: the run goes on with the further pair
+    p = run(f"resume={made}", "limit=2", "workers=2", "fail_fast=true", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert [r["pair"] for r in read_rows(made / "results.jsonl")] == ["3dmatch_000", "3dmatch_001"]
+    p = run(f"resume={made}", "limit=1", tmp=tmp_path)
+    assert p.returncode == 2 and "a resume may raise limit, not lower it" in p.stdout + p.stderr
+
+
+def test_resume_of_a_directory_that_is_no_run_is_refused(tmp_path):
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "a.jpg").write_text("x")
+    p = run("limit=1", f"resume={other}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and f"{other} is no run directory (it has no config.yaml)" in out
+    assert [x.name for x in other.iterdir()] == ["a.jpg"]
+
+
+def test_resume_auto_in_a_single_run_continues_the_latest_run_of_this_config(tmp_path):
+    runs = tmp_path / "runs"
+    p = run("limit=1", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    p = run("limit=2", "resume=auto", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert list(runs.iterdir()) == [made] and len(read_rows(made / "results.jsonl")) == 2
+    p = run("limit=2", "sampler=random", "resume=auto", _default_run_dir(runs), tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2 and "resume=auto: no earlier run of this exact config" in out
+    assert list(runs.iterdir()) == [made]
+
+
+def _signal_after_first_row(sig: int, run_dir: Path, *overrides: str) -> tuple[int, str]:
+    cmd = [sys.executable, "run.py", "progress=false", f"hydra.run.dir={run_dir}", *overrides]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    log = run_dir / "results.jsonl"
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run should still be going"
+        workers = subprocess.run(
+            ["pgrep", "-P", str(proc.pid)], capture_output=True, text=True
+        ).stdout.split()
+        proc.send_signal(sig)
+        out = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    for pid in workers:  # ended with the run: gone, or a zombie waiting for init to reap it
+        stat = Path(f"/proc/{pid}/stat")
+        assert not stat.exists() or stat.read_text().split(") ")[1].startswith("Z"), f"worker {pid} lives on"
+    return proc.returncode, out
+
+
+def test_sigterm_with_workers_ends_them_writes_the_tables_and_says_how_to_resume(tmp_path):
+    run_dir = tmp_path / "run"
+    rc, out = _signal_after_first_row(signal.SIGTERM, run_dir, "workers=2", "limit=8", "tracker=none")
+    assert rc == 130, out[-2000:]
+    assert f"rerun with resume={run_dir}" in out and "Traceback" not in out
+    rows = read_rows(run_dir / "results.jsonl")
+    assert 1 <= len(rows) < 8
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["pairs"] == len(rows) and not summary["complete"]
+    assert (run_dir / "results.csv").read_text().count("\n") == len(rows) + 1
+    assert not (run_dir / LOCK_NAME).exists()
+
+
+def test_ctrl_c_with_the_trackers_on_prints_no_traceback(tmp_path):
+    run_dir = tmp_path / "run"
+    rc, out = _signal_after_first_row(signal.SIGINT, run_dir, "limit=8")
+    assert rc == 130, out[-2000:]
+    saved = re.search(r"interrupted: (\d+) pairs are saved", out)
+    assert saved and int(saved.group(1)) == len(read_rows(run_dir / "results.jsonl")), out[-2000:]
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out
+    assert (run_dir / "recording.rrd").is_file() and (run_dir / "summary.json").is_file()
+
+
+def test_ctrl_c_before_the_first_pair_leaves_no_run_directory(tmp_path):
+    """The pair's file is a FIFO nobody writes: the run blocks reading it, after its start-up wrote
+    config.yaml and started the trackers, and Ctrl-C lands before any pair has finished."""
+    fifo = tmp_path / "src.npy"
+    os.mkfifo(fifo)
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "run.py", "progress=false", f"hydra.run.dir={run_dir}", "dataset=pairs",
+           f"dataset.source={fifo}", f"dataset.target={fifo}"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not (run_dir / "config.yaml").exists():
+            time.sleep(0.05)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        out = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out[-2000:]
+    assert "Traceback" not in out and ("nothing to resume" in out or "nothing was written" in out)
+    assert not run_dir.exists()
+
+
+def test_resume_keeps_the_earlier_recording_and_wandb_run_and_the_report_reads_every_part(tmp_path):
+    from fastmac_exp.trackers.wandb_tracker import find_offline_runs, read_offline_run
+
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "run.py", "progress=false", f"hydra.run.dir={run_dir}"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    first = subprocess.run([*cmd, "limit=1"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr[-2000:]
+    recording = (run_dir / "recording.rrd").read_bytes()
+    again = subprocess.run([*cmd, "limit=2", f"resume={run_dir}"], cwd=REPO, env=env, capture_output=True,
+                           text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert (run_dir / "recording.rrd").read_bytes() == recording  # the first part, untouched
+    assert (run_dir / "recording.part2.rrd").is_file()
+    runs = find_offline_runs(run_dir)
+    assert len(runs) == 2
+    parts = [read_offline_run(r) for r in runs]
+    assert [[h["pair/index"] for h in p["history"] if "pair/index" in h] for p in parts] == [[0], [1]]
+    assert parts[1]["run"]["name"].endswith("(part 2)")
+    report = subprocess.run([sys.executable, "-m", "fastmac_exp.report", str(run_dir)], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert report.returncode == 0, report.stderr[-2000:]
+    pngs = sorted(p.name for p in (run_dir / "report" / "pairs").glob("*.png"))
+    assert pngs == ["3dmatch_000.png", "3dmatch_001.png"]
