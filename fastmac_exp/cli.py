@@ -64,8 +64,14 @@ def check_launcher(argv: list[str]) -> str | None:
     return None
 
 
-# The ratio in a run directory's name: the one used (sampler=none keeps everything).
-OmegaConf.register_new_resolver("run_ratio", ratio_used, replace=True)
+def run_amount(sampler: str, ratio: float, samples: int | None = None) -> str:
+    """What a run directory's name says the sampler keeps: the ratio used (sampler=none keeps everything),
+    or `k<samples>` for a count."""
+    used = ratio_used(sampler, ratio)
+    return f"k{samples}" if samples is not None and used != 1.0 else str(used)
+
+
+OmegaConf.register_new_resolver("run_ratio", run_amount, replace=True)
 
 
 def run_dataset(choice: str, family: str | None) -> str:

@@ -168,6 +168,9 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     assert p.returncode == 0, p.stderr[-2000:]
     (made,) = runs.iterdir()
     assert made.name.endswith("_synthetic-3dmatch_fpfh_none_1.0"), made.name
+    counted = run("samples=300", "limit=1", _default_run_dir(tmp_path / "counted"), tmp=tmp_path)
+    assert counted.returncode == 0, counted.stderr[-2000:]
+    assert next((tmp_path / "counted").iterdir()).name.endswith("_highpass_k300")
     # a config error and a resume= run leave no directory of their own
     bad = run("dataset.family=kiti", _default_run_dir(runs), tmp=tmp_path)
     assert bad.returncode == 2
