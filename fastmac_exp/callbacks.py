@@ -21,6 +21,11 @@ class RefuseLockedRunDir(Callback):
     and log there (the experiment's own lock then keeps out a run that starts at the same instant)."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from hydra.core.hydra_config import HydraConfig
+
+        # the default run.dir interpolates ${hydra:runtime.choices...}, which needs the HydraConfig that
+        # Hydra sets only later in run_job: set it here (run_job sets the same config again)
+        HydraConfig.instance().set_config(config)
         run_dir = Path(str(config.hydra.run.dir))
         owner = held_by(run_dir)
         if owner:

@@ -168,6 +168,7 @@ def test_run_directory_names_say_descriptor_and_the_ratio_used_and_failed_runs_l
     assert p.returncode == 0, p.stderr[-2000:]
     (made,) = runs.iterdir()
     assert made.name.endswith("_synthetic-3dmatch_fpfh_none_1.0"), made.name
+    assert "Warning" not in p.stderr, p.stderr[-2000:]  # the lock callback resolves the default name cleanly
     counted = run("samples=300", "limit=1", _default_run_dir(tmp_path / "counted"), tmp=tmp_path)
     assert counted.returncode == 0, counted.stderr[-2000:]
     assert next((tmp_path / "counted").iterdir()).name.endswith("_highpass_k300")
