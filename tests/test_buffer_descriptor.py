@@ -321,3 +321,67 @@ def test_config_and_graph_thresholds():
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("kitti", "spinnet").graph.threshold == 0.999
+
+
+GOLDEN = REPO / "tests" / "data" / "buffer_golden.npz"
+
+
+def golden_pair(family: str) -> Pair:
+    """The generated pair whose BUFFER output before the speed work (commit 6333dc0) is frozen in GOLDEN."""
+    room = toy_room(2, spacing=0.02, size=1.5) - np.array([0.75, 0.75, 1.0])
+    rng = np.random.default_rng(2)
+    gt = np.eye(4)
+    gt[:3, :3] = random_rotation(rng)
+    tgt = room[rng.permutation(len(room))[: int(0.8 * len(room))]] @ gt[:3, :3].T
+    return Pair(name="room", gt=gt, src_cloud=room, tgt_cloud=tgt, voxel_size=0.05, family=family)
+
+
+@pytest.mark.parametrize("family,scale", [("3dmatch", None), ("kitti", 0.1)])
+def test_same_output_as_before_the_speed_work(family, scale):
+    """Describing only the kept source keypoints, and the cloud cache, change nothing: the correspondences
+    and descriptors equal those the code computed before (describing every keypoint of both clouds)."""
+    gold = np.load(GOLDEN)
+    pair = golden_pair(family)
+    d = BufferDescriptor(voxel_size=0.08, max_correspondences=300, threads=1, progress=False, scale=scale)
+    corr = d(pair, np.random.default_rng(0))
+    src_log, tgt_log = d.timings_log
+    assert (src_log["keypoints"], tgt_log["keypoints"]) == (300, 1837)  # 300 of the 1,538 source keypoints
+    np.testing.assert_array_equal(corr.src, gold[f"{family}_src"])
+    np.testing.assert_array_equal(corr.tgt, gold[f"{family}_tgt"])
+    np.testing.assert_allclose(corr.scores, gold[f"{family}_scores"], atol=1e-4)
+    s = 1.0 if scale is None else scale
+    for side, cloud in (("src", pair.src_cloud), ("tgt", pair.tgt_cloud)):
+        _, f = d.features(cloud, 0.08, family=family, scale=s)
+        np.testing.assert_allclose(f[gold[f"{family}_{side}_rows"]], gold[f"{family}_{side}_desc"], atol=1e-4)
+    assert d.timings_log[-1]["keypoints"] == 0  # the target was described whole by the pair: all reused
+
+
+def test_cache_describes_a_shared_cloud_once(room):
+    """A cloud described once is not described again; a smaller cache forgets, and cache_clouds=0 keeps
+    nothing; the descriptors are the same either way."""
+    d = BufferDescriptor(threads=1, progress=False, cache_clouds=1)
+    model = d.load("3dmatch")
+    kp = voxel_down(room, 0.2)
+    a = d.describe(model, room, kp, 1.0, rows=np.arange(10))
+    assert d.last_timings["keypoints"] == 10
+    b = d.describe(model, room, kp, 1.0)
+    assert (d.last_timings["keypoints"], d.last_timings["reused"]) == (len(kp) - 10, 10)
+    np.testing.assert_array_equal(a, b[:10])
+    d.describe(model, room + 0.01, kp + 0.01, 1.0)  # another cloud evicts the first (cache of 1)
+    c = d.describe(model, room, kp, 1.0)
+    assert d.last_timings["keypoints"] == len(kp)
+    np.testing.assert_allclose(b, c, atol=1e-6)
+    none = BufferDescriptor(threads=1, progress=False, cache_clouds=0)
+    none.describe(none.load("3dmatch"), room, kp, 1.0)
+    none.describe(none.load("3dmatch"), room, kp, 1.0)
+    assert none.last_timings["keypoints"] == len(kp) and not none._described
+    with pytest.raises(InputError):
+        BufferDescriptor(cache_clouds=-1)
+
+
+def test_mutual_matching_describes_every_keypoint():
+    pair = golden_pair("3dmatch")
+    d = BufferDescriptor(voxel_size=0.2, max_correspondences=20, mutual=True, threads=1, progress=False)
+    corr = d(pair, np.random.default_rng(0))
+    n_src = len(voxel_down(pair.src_cloud, 0.2))
+    assert d.timings_log[0]["keypoints"] == n_src and len(corr) <= 20
