@@ -317,6 +317,9 @@ def test_config_and_graph_thresholds():
     assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
     d = instantiate(cfg.descriptor)  # the node as it stands
     assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
+    assert d.precision == "float32" and d.cache_clouds == 8
+    q = instantiate(cfg.descriptor, precision="int8")
+    assert q.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
     # spec 2.2: BUFFER's descriptor is a (mini) SpinNet: Gaussian 0.85 indoors, KITTI "any other" 0.999
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85
@@ -385,3 +388,48 @@ def test_mutual_matching_describes_every_keypoint():
     corr = d(pair, np.random.default_rng(0))
     n_src = len(voxel_down(pair.src_cloud, 0.2))
     assert d.timings_log[0]["keypoints"] == n_src and len(corr) <= 20
+
+
+QUANT = json.loads((REPO / "training" / "buffer_quantize.json").read_text())
+
+
+def test_int8_models_are_the_recorded_quantisation_of_the_shipped_models():
+    from fastmac_exp.descriptors.buffer import SHIPPED_INT8
+
+    q = BufferDescriptor(threads=1, progress=False, precision="int8")
+    for fam, rec in QUANT["families"].items():
+        path = resolve_model_path(SHIPPED_INT8[fam])
+        assert sha256(path) == rec["int8_sha256"] and path.stat().st_size < 1e6, fam
+        assert sha256(resolve_model_path(SHIPPED[fam])) == rec["float_sha256"], fam
+        model = q.load(fam)
+        assert model.desc_path == path and model.metadata["fastmac.precision"] == "int8"
+        assert model.metadata["fastmac.quantized_from_sha256"] == rec["float_sha256"]
+        assert model.params == BufferDescriptor(progress=False).load(fam).params
+        assert "QLinearConv" in {n.op_type for n in __import__("onnx").load(str(path)).graph.node}
+    assert q.name == "buffer_int8" and BufferDescriptor(progress=False).name == "buffer"
+
+
+def test_int8_descriptors_stay_close_to_float32(room):
+    """Quantised descriptors point the same way as the float32 ones (measured mean cosine 0.998 on real
+    indoor keypoints, training/buffer_quantize.json) and keep the rotation invariance."""
+    kp = voxel_down(room, 0.15)
+    fl = BufferDescriptor(threads=1, progress=False)
+    q = BufferDescriptor(threads=1, progress=False, precision="int8")
+    a = fl.describe(fl.load("3dmatch"), room, kp, 1.0)
+    b = q.describe(q.load("3dmatch"), room, kp, 1.0)
+    mean, nearest = cosine_stats(a, b)  # measured 0.997 and 0.71 (the room's plane patches look alike)
+    assert mean > 0.99 and nearest > 0.6, (mean, nearest)
+    assert np.abs(a - b).max() > 1e-4  # it is another model, not the float one under a new name
+    rot = random_rotation(np.random.default_rng(5))
+    mean_rot, _ = cosine_stats(b, q.describe(q.load("3dmatch"), room @ rot.T, kp @ rot.T, 1.0))
+    assert mean_rot > 0.95, mean_rot
+
+
+def test_precision_is_checked():
+    with pytest.raises(InputError, match="precision"):
+        BufferDescriptor(precision="fp16")
+    wrong = BufferDescriptor(precision="int8", model_3dmatch_int8=SHIPPED["3dmatch"], progress=False)
+    with pytest.raises(InputError, match="float32"):
+        wrong.load("3dmatch")
+    with pytest.raises(InputError, match="buffer_quantize"):
+        BufferDescriptor(precision="int8", model_kitti_int8="nowhere_int8.onnx").load("kitti")

@@ -67,6 +67,11 @@ SHIPPED = {
     "3dmatch": "models/buffer_3dmatch_desc.onnx",  # relative to the package (fastmac_exp/models/)
     "kitti": "models/buffer_kitti_desc.onnx",
 }
+SHIPPED_INT8 = {  # training/buffer_quantize.py
+    "3dmatch": "models/buffer_3dmatch_desc_int8.onnx",
+    "kitti": "models/buffer_kitti_desc_int8.onnx",
+}
+PRECISIONS = ("float32", "int8")
 REF_INPUTS = (
     ("normals", "tensor(float)", 2),
     ("points0", "tensor(float)", 2),
@@ -495,10 +500,13 @@ class BufferDescriptor(FeatureDescriptor):
     the shuffles (upstream shuffles at random; fixed here so a cloud is always described the same way);
     `progress`: a progress bar over each cloud's keypoints. `axis`: None = the model's (`ref` for the
     3DMatch model, `none` for KITTI); `pca` = upstream's own fallback (cal_Z_axis, the patch's normal),
-    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better). `cache_clouds`: how many clouds'
-    preparation and described keypoints are kept in memory (0: none), so a cloud shared by pairs is
-    described once. A pair describes only the source keypoints its correspondences keep (one-way
-    matching: the cap's random subset of the source keypoints, drawn as before) and every target keypoint.
+    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better). `precision`: "float32" (the
+    exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`: the Desc convolutions quantised
+    by training/buffer_quantize.py, about 3x faster; rows labelled `buffer_int8`). `cache_clouds`: how
+    many clouds' preparation and described keypoints are kept in memory (0: none), so a cloud shared by
+    pairs is described once. A pair describes only the source keypoints its correspondences keep (one-way
+    matching: the cap's random subset of the source keypoints, drawn as before) and every target
+    keypoint.
     """
 
     name = "buffer"
@@ -509,6 +517,9 @@ class BufferDescriptor(FeatureDescriptor):
         model: str = "auto",
         model_3dmatch: str = SHIPPED["3dmatch"],
         model_kitti: str = SHIPPED["kitti"],
+        model_3dmatch_int8: str = SHIPPED_INT8["3dmatch"],
+        model_kitti_int8: str = SHIPPED_INT8["kitti"],
+        precision: str = "float32",
         ref_model: str | None = None,
         voxel_size: float | None = None,
         scale: float | None = None,
@@ -523,6 +534,8 @@ class BufferDescriptor(FeatureDescriptor):
         graph_key: str | None = None,
     ) -> None:
         super().__init__(graph_key)
+        if precision not in PRECISIONS:
+            raise InputError(f"buffer precision must be one of {PRECISIONS}, got {precision!r}")
         if cache_clouds < 0:
             raise InputError(f"buffer cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
         if voxel_size is not None and not voxel_size > 0:
@@ -536,6 +549,11 @@ class BufferDescriptor(FeatureDescriptor):
         self.model = str(model)
         self.model_3dmatch = str(model_3dmatch)
         self.model_kitti = str(model_kitti)
+        self.model_3dmatch_int8 = str(model_3dmatch_int8)
+        self.model_kitti_int8 = str(model_kitti_int8)
+        self.precision = precision
+        if precision == "int8":
+            self.name = "buffer_int8"
         self.ref_model = ref_model
         self.voxel_size = voxel_size
         self.scale = scale
@@ -567,14 +585,33 @@ class BufferDescriptor(FeatureDescriptor):
         self.__dict__.update(state)
 
     def model_path(self, which: str) -> Path:
-        """The Desc model file for "3dmatch", "kitti" or a path."""
-        return resolve_model_path(
-            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
-        )
+        """The Desc model file for "3dmatch", "kitti" or a path, at `precision` (int8: the shipped int8 file,
+        or for a path `<stem>_int8.onnx` beside it)."""
+        if self.precision == "float32":
+            return resolve_model_path(
+                {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
+            )
+        named = {"3dmatch": self.model_3dmatch_int8, "kitti": self.model_kitti_int8}.get(which)
+        if named is None:
+            path = resolve_model_path(which)
+            named = str(path.with_name(path.stem + "_int8.onnx"))
+        try:
+            return resolve_model_path(named)
+        except InputError as exc:
+            raise InputError(
+                f"{exc}; the int8 BUFFER models are made by `python -m training.buffer_quantize`"
+            ) from exc
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
-            self._models[which] = BufferModel(self.model_path(which), self.ref_model, self.threads)
+            model = BufferModel(self.model_path(which), self.ref_model, self.threads)
+            found = model.metadata.get("fastmac.precision", "float32")
+            if found != self.precision:
+                raise InputError(
+                    f"BUFFER model {model.desc_path} is {found} (metadata fastmac.precision), "
+                    f"descriptor.precision is {self.precision}"
+                )
+            self._models[which] = model
         return self._models[which]
 
     def model_for(self, family: str) -> BufferModel:
