@@ -173,10 +173,37 @@ def test_cell_grouping_equals_brute_force():
     pts[:3, :, 2] *= 0.1  # three flat patches, three blobs
     pts *= (rng.uniform(size=(6, 512, 1)) ** (1 / 3)) / np.linalg.norm(pts, axis=2, keepdims=True)
     pts[:, 400:] = 0.0  # padding slots hold the keypoint (the origin)
-    got = group_cells(pts, params)
-    assert got.shape == (6, params.size, 3) and got.dtype == np.float32
-    assert np.array_equal(got, brute_force_cells(pts, params))
-    assert np.array_equal(group_cells(pts, params, chunk=1), got)
+    want = brute_force_cells(pts, params)
+    for fast in (False, True):  # numpy, then the C++ core's kernel (numpy again when it is not built)
+        got = group_cells(pts, params, fast=fast)
+        assert got.shape == (6, params.size, 3) and got.dtype == np.float32
+        assert np.array_equal(got, want), fast
+    assert np.array_equal(group_cells(pts, params, chunk=1, fast=False), want)
+
+
+needs_core = pytest.mark.skipif(not __import__("fastmac_exp.core").core.available(), reason="no C++ core")
+
+
+@needs_core
+def test_cpp_patch_kernels_equal_numpy(room):
+    """The C++ core's cut_patches and group_cells give numpy's patches and cells, bit for bit, on a room
+    and a sparse street-like cloud (balls of a few points to many hundreds, keypoints off the cloud)."""
+    from scipy.spatial import cKDTree
+
+    from fastmac_exp.descriptors.buffer import cut_patches
+
+    rng = np.random.default_rng(3)
+    street = np.vstack([room * 8.0, rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]])
+    params = BufferParams()
+    for cloud, radius in ((room, 0.3), (street, 3.0)):
+        cloud = cloud[rng.permutation(len(cloud))]
+        kp = np.vstack([cloud[rng.choice(len(cloud), 200, replace=False)], rng.uniform(-40, 40, (10, 3))])
+        tree = cKDTree(cloud)
+        a = cut_patches(cloud, tree, kp, radius, 512, fast=False)
+        b = cut_patches(cloud, tree, kp, radius, 512)
+        assert np.array_equal(a, b)
+        aligned = (a - kp[:, None, :]) / radius
+        assert np.array_equal(group_cells(aligned, params), group_cells(aligned, params, fast=False))
 
 
 def test_alignment_takes_the_axis_to_z():
