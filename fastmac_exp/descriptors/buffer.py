@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
-from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
+from fastmac_exp.descriptors.onnx_descriptor import open_session, resolve_model_path
 from fastmac_exp.descriptors.patches import MIN_POINTS, keypoints, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
@@ -382,7 +382,7 @@ def group_cells(aligned: np.ndarray, params: BufferParams, chunk: int = 96, fast
 # ONNX models
 
 
-def _session(path: Path, threads: int):
+def _session(path: Path, threads: int, providers="auto"):
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
@@ -390,7 +390,7 @@ def _session(path: Path, threads: int):
         opts.intra_op_num_threads = threads
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return open_session(path, opts, providers, f"BUFFER model {path.name}")
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
         raise InputError(f"BUFFER model {path} could not be loaded: {exc}") from exc
 
@@ -458,10 +458,10 @@ def check_ref_contract(sess, path: Path) -> None:
 class BufferModel:
     """One family's Desc (+ Ref) sessions, their parameters and contracts."""
 
-    def __init__(self, desc_path: Path, ref_path: str | None, threads: int) -> None:
+    def __init__(self, desc_path: Path, ref_path: str | None, threads: int, providers="auto") -> None:
         self.desc_path = desc_path
         self.threads = threads
-        self.desc = _session(desc_path, threads)
+        self.desc = _session(desc_path, threads, providers)
         meta = self.desc.get_modelmeta().custom_metadata_map or {}
         if meta.get("fastmac.preprocess") != "buffer":
             raise InputError(
@@ -480,7 +480,7 @@ class BufferModel:
             p = Path(name)
             self.ref_path = p if p.is_absolute() or ref_path else desc_path.parent / p
             self.ref_path = resolve_model_path(self.ref_path)
-            self.ref = _session(self.ref_path, threads)
+            self.ref = _session(self.ref_path, threads, providers)
             check_ref_contract(self.ref, self.ref_path)
             rmeta = self.ref.get_modelmeta().custom_metadata_map or {}
             try:
@@ -534,7 +534,9 @@ class BufferDescriptor(FeatureDescriptor):
     `voxel_size` (None: the pair's), as FPFH. `scale`: BUFFER's lengths are multiplied by it (None: the
     pair's voxel size / the model's reference voxel). Matching, cap and labels as the other front ends
     (`max_correspondences` random subset, one-way nearest neighbour unless `mutual`).
-    `threads`: onnxruntime intra-op threads (0: all cores); `batch_size`: keypoints per run; `seed`:
+    `threads`: onnxruntime intra-op threads (0: all cores); `batch_size`: keypoints per run;
+    `execution_providers`: "auto" (onnxruntime-gpu's CUDA provider when there is one, else the CPU) or a
+    list such as ["cuda", "cpu"] (onnx_descriptor.session_providers: CPU fallback with a notice); `seed`:
     the shuffles (upstream shuffles at random; fixed here so a cloud is always described the same way);
     `progress`: a progress bar over each cloud's keypoints. `axis`: None = the model's (`ref` for the
     3DMatch model, `none` for KITTI); `pca` = upstream's own fallback (cal_Z_axis, the patch's normal),
@@ -569,6 +571,7 @@ class BufferDescriptor(FeatureDescriptor):
         progress: bool = True,
         axis: str | None = None,
         cache_clouds: int = 8,
+        execution_providers="auto",
         graph_key: str | None = None,
     ) -> None:
         super().__init__(graph_key)
@@ -605,6 +608,7 @@ class BufferDescriptor(FeatureDescriptor):
             raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
         self.axis = axis
         self.cache_clouds = int(cache_clouds)
+        self.execution_providers = execution_providers
         self._models: dict[str, BufferModel] = {}
         self._states: OrderedDict[tuple, CloudState] = OrderedDict()
         self._described: OrderedDict[tuple, Described] = OrderedDict()
@@ -642,7 +646,9 @@ class BufferDescriptor(FeatureDescriptor):
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
-            model = BufferModel(self.model_path(which), self.ref_model, self.threads)
+            model = BufferModel(
+                self.model_path(which), self.ref_model, self.threads, self.execution_providers
+            )
             found = model.metadata.get("fastmac.precision", "float32")
             if found != self.precision:
                 raise InputError(
