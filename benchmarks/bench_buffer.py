@@ -58,6 +58,7 @@ def old_module():
     path.write_text(src)
     spec = importlib.util.spec_from_file_location(f"buffer_{BEFORE}", path)
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
     return mod
 

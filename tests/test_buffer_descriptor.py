@@ -344,9 +344,10 @@ def test_config_and_graph_thresholds():
     assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
     d = instantiate(cfg.descriptor)  # the node as it stands
     assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
-    assert d.precision == "float32" and d.cache_clouds == 8
-    q = instantiate(cfg.descriptor, precision="int8")
-    assert q.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
+    assert d.precision == "int8" and d.cache_clouds == 8 and d.name == "buffer_int8"  # the run's default
+    assert d.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
+    f = instantiate(cfg.descriptor, precision="float32")
+    assert f.model_for("kitti").desc_path.name == "buffer_kitti_desc.onnx" and f.name == "buffer"
     # spec 2.2: BUFFER's descriptor is a (mini) SpinNet: Gaussian 0.85 indoors, KITTI "any other" 0.999
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85
