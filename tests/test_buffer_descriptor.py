@@ -173,10 +173,37 @@ def test_cell_grouping_equals_brute_force():
     pts[:3, :, 2] *= 0.1  # three flat patches, three blobs
     pts *= (rng.uniform(size=(6, 512, 1)) ** (1 / 3)) / np.linalg.norm(pts, axis=2, keepdims=True)
     pts[:, 400:] = 0.0  # padding slots hold the keypoint (the origin)
-    got = group_cells(pts, params)
-    assert got.shape == (6, params.size, 3) and got.dtype == np.float32
-    assert np.array_equal(got, brute_force_cells(pts, params))
-    assert np.array_equal(group_cells(pts, params, chunk=1), got)
+    want = brute_force_cells(pts, params)
+    for fast in (False, True):  # numpy, then the C++ core's kernel (numpy again when it is not built)
+        got = group_cells(pts, params, fast=fast)
+        assert got.shape == (6, params.size, 3) and got.dtype == np.float32
+        assert np.array_equal(got, want), fast
+    assert np.array_equal(group_cells(pts, params, chunk=1, fast=False), want)
+
+
+needs_core = pytest.mark.skipif(not __import__("fastmac_exp.core").core.available(), reason="no C++ core")
+
+
+@needs_core
+def test_cpp_patch_kernels_equal_numpy(room):
+    """The C++ core's cut_patches and group_cells give numpy's patches and cells, bit for bit, on a room
+    and a sparse street-like cloud (balls of a few points to many hundreds, keypoints off the cloud)."""
+    from scipy.spatial import cKDTree
+
+    from fastmac_exp.descriptors.buffer import cut_patches
+
+    rng = np.random.default_rng(3)
+    street = np.vstack([room * 8.0, rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]])
+    params = BufferParams()
+    for cloud, radius in ((room, 0.3), (street, 3.0)):
+        cloud = cloud[rng.permutation(len(cloud))]
+        kp = np.vstack([cloud[rng.choice(len(cloud), 200, replace=False)], rng.uniform(-40, 40, (10, 3))])
+        tree = cKDTree(cloud)
+        a = cut_patches(cloud, tree, kp, radius, 512, fast=False)
+        b = cut_patches(cloud, tree, kp, radius, 512)
+        assert np.array_equal(a, b)
+        aligned = (a - kp[:, None, :]) / radius
+        assert np.array_equal(group_cells(aligned, params), group_cells(aligned, params, fast=False))
 
 
 def test_alignment_takes_the_axis_to_z():
@@ -317,7 +344,120 @@ def test_config_and_graph_thresholds():
     assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
     d = instantiate(cfg.descriptor)  # the node as it stands
     assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
+    assert d.precision == "int8" and d.cache_clouds == 8 and d.name == "buffer_int8"  # the run's default
+    assert d.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
+    f = instantiate(cfg.descriptor, precision="float32")
+    assert f.model_for("kitti").desc_path.name == "buffer_kitti_desc.onnx" and f.name == "buffer"
     # spec 2.2: BUFFER's descriptor is a (mini) SpinNet: Gaussian 0.85 indoors, KITTI "any other" 0.999
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("kitti", "spinnet").graph.threshold == 0.999
+
+
+GOLDEN = REPO / "tests" / "data" / "buffer_golden.npz"
+
+
+def golden_pair(family: str) -> Pair:
+    """The generated pair whose BUFFER output before the speed work (commit 6333dc0) is frozen in GOLDEN."""
+    room = toy_room(2, spacing=0.02, size=1.5) - np.array([0.75, 0.75, 1.0])
+    rng = np.random.default_rng(2)
+    gt = np.eye(4)
+    gt[:3, :3] = random_rotation(rng)
+    tgt = room[rng.permutation(len(room))[: int(0.8 * len(room))]] @ gt[:3, :3].T
+    return Pair(name="room", gt=gt, src_cloud=room, tgt_cloud=tgt, voxel_size=0.05, family=family)
+
+
+@pytest.mark.parametrize("family,scale", [("3dmatch", None), ("kitti", 0.1)])
+def test_same_output_as_before_the_speed_work(family, scale):
+    """Describing only the kept source keypoints, and the cloud cache, change nothing: the correspondences
+    and descriptors equal those the code computed before (describing every keypoint of both clouds)."""
+    gold = np.load(GOLDEN)
+    pair = golden_pair(family)
+    d = BufferDescriptor(voxel_size=0.08, max_correspondences=300, threads=1, progress=False, scale=scale)
+    corr = d(pair, np.random.default_rng(0))
+    src_log, tgt_log = d.timings_log
+    assert (src_log["keypoints"], tgt_log["keypoints"]) == (300, 1837)  # 300 of the 1,538 source keypoints
+    np.testing.assert_array_equal(corr.src, gold[f"{family}_src"])
+    np.testing.assert_array_equal(corr.tgt, gold[f"{family}_tgt"])
+    np.testing.assert_allclose(corr.scores, gold[f"{family}_scores"], atol=1e-4)
+    s = 1.0 if scale is None else scale
+    for side, cloud in (("src", pair.src_cloud), ("tgt", pair.tgt_cloud)):
+        _, f = d.features(cloud, 0.08, family=family, scale=s)
+        np.testing.assert_allclose(f[gold[f"{family}_{side}_rows"]], gold[f"{family}_{side}_desc"], atol=1e-4)
+    assert d.timings_log[-1]["keypoints"] == 0  # the target was described whole by the pair: all reused
+
+
+def test_cache_describes_a_shared_cloud_once(room):
+    """A cloud described once is not described again; a smaller cache forgets, and cache_clouds=0 keeps
+    nothing; the descriptors are the same either way."""
+    d = BufferDescriptor(threads=1, progress=False, cache_clouds=1)
+    model = d.load("3dmatch")
+    kp = voxel_down(room, 0.2)
+    a = d.describe(model, room, kp, 1.0, rows=np.arange(10))
+    assert d.last_timings["keypoints"] == 10
+    b = d.describe(model, room, kp, 1.0)
+    assert (d.last_timings["keypoints"], d.last_timings["reused"]) == (len(kp) - 10, 10)
+    np.testing.assert_array_equal(a, b[:10])
+    d.describe(model, room + 0.01, kp + 0.01, 1.0)  # another cloud evicts the first (cache of 1)
+    c = d.describe(model, room, kp, 1.0)
+    assert d.last_timings["keypoints"] == len(kp)
+    np.testing.assert_allclose(b, c, atol=1e-6)
+    none = BufferDescriptor(threads=1, progress=False, cache_clouds=0)
+    none.describe(none.load("3dmatch"), room, kp, 1.0)
+    none.describe(none.load("3dmatch"), room, kp, 1.0)
+    assert none.last_timings["keypoints"] == len(kp) and not none._described
+    with pytest.raises(InputError):
+        BufferDescriptor(cache_clouds=-1)
+
+
+def test_mutual_matching_describes_every_keypoint():
+    pair = golden_pair("3dmatch")
+    d = BufferDescriptor(voxel_size=0.2, max_correspondences=20, mutual=True, threads=1, progress=False)
+    corr = d(pair, np.random.default_rng(0))
+    n_src = len(voxel_down(pair.src_cloud, 0.2))
+    assert d.timings_log[0]["keypoints"] == n_src and len(corr) <= 20
+
+
+QUANT = json.loads((REPO / "training" / "buffer_quantize.json").read_text())
+
+
+def test_int8_models_are_the_recorded_quantisation_of_the_shipped_models():
+    from fastmac_exp.descriptors.buffer import SHIPPED_INT8
+
+    q = BufferDescriptor(threads=1, progress=False, precision="int8")
+    for fam, rec in QUANT["families"].items():
+        path = resolve_model_path(SHIPPED_INT8[fam])
+        assert sha256(path) == rec["int8_sha256"] and path.stat().st_size < 1e6, fam
+        assert sha256(resolve_model_path(SHIPPED[fam])) == rec["float_sha256"], fam
+        model = q.load(fam)
+        assert model.desc_path == path and model.metadata["fastmac.precision"] == "int8"
+        assert model.metadata["fastmac.quantized_from_sha256"] == rec["float_sha256"]
+        assert model.params == BufferDescriptor(progress=False).load(fam).params
+        assert "QLinearConv" in {n.op_type for n in __import__("onnx").load(str(path)).graph.node}
+    assert q.name == "buffer_int8" and BufferDescriptor(progress=False).name == "buffer"
+
+
+def test_int8_descriptors_stay_close_to_float32(room):
+    """Quantised descriptors point the same way as the float32 ones (measured mean cosine 0.998 on real
+    indoor keypoints, training/buffer_quantize.json) and keep the rotation invariance."""
+    kp = voxel_down(room, 0.15)
+    fl = BufferDescriptor(threads=1, progress=False)
+    q = BufferDescriptor(threads=1, progress=False, precision="int8")
+    a = fl.describe(fl.load("3dmatch"), room, kp, 1.0)
+    b = q.describe(q.load("3dmatch"), room, kp, 1.0)
+    mean, nearest = cosine_stats(a, b)  # measured 0.997 and 0.71 (the room's plane patches look alike)
+    assert mean > 0.99 and nearest > 0.6, (mean, nearest)
+    assert np.abs(a - b).max() > 1e-4  # it is another model, not the float one under a new name
+    rot = random_rotation(np.random.default_rng(5))
+    mean_rot, _ = cosine_stats(b, q.describe(q.load("3dmatch"), room @ rot.T, kp @ rot.T, 1.0))
+    assert mean_rot > 0.95, mean_rot
+
+
+def test_precision_is_checked():
+    with pytest.raises(InputError, match="precision"):
+        BufferDescriptor(precision="fp16")
+    wrong = BufferDescriptor(precision="int8", model_3dmatch_int8=SHIPPED["3dmatch"], progress=False)
+    with pytest.raises(InputError, match="float32"):
+        wrong.load("3dmatch")
+    with pytest.raises(InputError, match="buffer_quantize"):
+        BufferDescriptor(precision="int8", model_kitti_int8="nowhere_int8.onnx").load("kitti")

@@ -238,3 +238,48 @@ def test_pickles_for_parallel_workers(desc):
     shape = (5, desc.params.size, desc.params.channels)
     x = np.random.default_rng(0).uniform(-1, 1, shape).astype(np.float32)
     np.testing.assert_allclose(clone.embed(x), desc.embed(x), atol=1e-6)
+
+
+def test_execution_providers_reach_the_session(monkeypatch, caplog):
+    """`execution_providers` goes to onnxruntime; a provider this onnxruntime lacks, or one that fails to
+    start, falls back to the CPU with a one-line notice; "auto" asks for CUDA first, silently."""
+    import logging
+
+    import onnxruntime as ort
+
+    from fastmac_exp.descriptors.buffer import BufferDescriptor
+
+    with caplog.at_level(logging.WARNING):
+        d = OnnxDescriptor(execution_providers=["cuda", "cpu"])
+    assert d._session.get_providers() == ["CPUExecutionProvider"]
+    if "CUDAExecutionProvider" not in ort.get_available_providers():  # the CPU build (this project's pin)
+        notes = [r.getMessage() for r in caplog.records if "CUDAExecutionProvider" in r.getMessage()]
+        assert len(notes) == 1 and "\n" not in notes[0] and "running on CPUExecutionProvider" in notes[0]
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            OnnxDescriptor()  # auto: no notice on a machine without a GPU
+        assert not caplog.records
+
+    seen = []
+    real = ort.InferenceSession
+
+    def fake(path, opts=None, providers=None):
+        seen.append(list(providers))
+        if "CUDAExecutionProvider" in providers and len(seen) % 2:  # every other GPU start fails
+            raise RuntimeError("CUDA failure 100: no CUDA-capable device is detected\nmore lines")
+        return real(path, opts, providers=["CPUExecutionProvider"])
+
+    both = ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    monkeypatch.setattr(ort, "get_available_providers", lambda: both)
+    monkeypatch.setattr(ort, "InferenceSession", fake)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        d = OnnxDescriptor(execution_providers="auto")
+    assert seen == [both, ["CPUExecutionProvider"]]  # asked for CUDA, it failed, CPU
+    assert d._session.get_providers() == ["CPUExecutionProvider"]
+    assert any("did not start (CUDA failure 100" in r.getMessage() for r in caplog.records)
+    seen.clear()
+    BufferDescriptor(execution_providers=["tensorrt", "cuda"], progress=False).load("3dmatch")
+    assert seen[0] == both  # TensorRT is not there: dropped; CUDA then the CPU fallback
+    assert OnnxDescriptor(execution_providers=["cpu"])._session.get_providers() == ["CPUExecutionProvider"]
+    assert seen[-1] == ["CPUExecutionProvider"]

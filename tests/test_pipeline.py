@@ -217,7 +217,7 @@ class CostlyDescriptor(PrecomputedDescriptor):
 def test_a_costly_descriptor_says_what_it_costs_when_the_run_starts(tmp_path, caplog):
     from fastmac_exp.descriptors.buffer import BufferDescriptor
 
-    assert "minutes" in BufferDescriptor.cost_note and "19 min" in BufferDescriptor.cost_note
+    assert "a pair" in BufferDescriptor.cost_note and "INT8" in BufferDescriptor.cost_note
     cfg = _cfg(tmp_path, descriptor={"_target_": "tests.test_pipeline.CostlyDescriptor"})
     with caplog.at_level("WARNING", logger="fastmac_exp.experiment"):
         run_experiment(cfg, tmp_path / "run")

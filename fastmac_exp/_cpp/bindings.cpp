@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 
+#include "buffer_patches.hpp"
 #include "interrupt.hpp"
 #include "mac_core.hpp"
 #include "selection.hpp"
@@ -328,6 +329,40 @@ nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
     return pose_to_numpy(T);
 }
 
+nb::object buffer_cut_patches(const Points &cloud, const Points &keypoints, double radius, int64_t k) {
+    if (cloud.shape(1) != 3 || keypoints.shape(1) != 3 || k < 1)
+        throw std::invalid_argument("buffer_cut_patches: (N, 3) cloud and (M, 3) keypoints, k >= 1");
+    const int64_t m = (int64_t)keypoints.shape(0);
+    std::vector<double> out(size_t(m * k * 3));
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::buffer_cut_patches(cloud.data(), (int64_t)cloud.shape(0), keypoints.data(), m, radius, k,
+                                    out.data());
+    }
+    return to_numpy(std::move(out), {size_t(m), size_t(k), 3});
+}
+
+using Floats3 = nb::ndarray<const float, nb::ndim<3>, nb::c_contig, nb::device::cpu>;
+using Floats2 = nb::ndarray<const float, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Shorts = nb::ndarray<const int16_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+
+nb::object buffer_group_cells(const Floats3 &pts, const Floats2 &centres, float r2, const Indices &ptr,
+                              const Shorts &cells, int64_t grid, float inv_h, int64_t samples) {
+    const int64_t m = (int64_t)pts.shape(0), p = (int64_t)pts.shape(1), ncell = (int64_t)centres.shape(0);
+    if (pts.shape(2) != 3 || centres.shape(1) != 3 || (int64_t)ptr.shape(0) != grid * grid * grid + 1)
+        throw std::invalid_argument("buffer_group_cells: (M, P, 3) points, (C, 3) centres, g^3 + 1 pointers");
+    for (size_t i = 0; i < cells.shape(0); ++i)
+        if (cells.data()[i] < 0 || cells.data()[i] >= ncell)
+            throw std::invalid_argument("buffer_group_cells: a cell index is out of range");
+    std::vector<float> out(size_t(m * ncell * samples * 3));
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::buffer_group_cells(pts.data(), m, p, centres.data(), ncell, r2, ptr.data(), cells.data(), grid,
+                                    inv_h, samples, out.data());
+    }
+    return to_numpy(std::move(out), {size_t(m), size_t(ncell * samples), 3});
+}
+
 }  // namespace
 
 NB_MODULE(_mac_core, m) {
@@ -399,6 +434,10 @@ NB_MODULE(_mac_core, m) {
           "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
+    m.def("buffer_cut_patches", &buffer_cut_patches, "cloud"_a, "keypoints"_a, "radius"_a, "k"_a,
+          "BUFFER patches (M, k, 3): the first k-1 cloud points within radius of each keypoint, padded with it");
+    m.def("buffer_group_cells", &buffer_group_cells, "pts"_a, "centres"_a, "r2"_a, "ptr"_a, "cells"_a, "grid"_a,
+          "inv_h"_a, "samples"_a, "BUFFER's sphere_query grouping of aligned patches (M, cells * samples, 3)");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },
           "Threads used when num_threads=0 (problems with fewer than serial_below rows run on one).");
     m.attr("serial_below") = fastmac::kSerialBelow;

@@ -41,8 +41,11 @@ expected and what was found):
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
+import time
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -51,8 +54,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.matching import correspondences_from_features, match_descriptors
-from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
+from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
+from fastmac_exp.descriptors.onnx_descriptor import open_session, resolve_model_path
 from fastmac_exp.descriptors.patches import MIN_POINTS, keypoints, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
@@ -64,6 +67,11 @@ SHIPPED = {
     "3dmatch": "models/buffer_3dmatch_desc.onnx",  # relative to the package (fastmac_exp/models/)
     "kitti": "models/buffer_kitti_desc.onnx",
 }
+SHIPPED_INT8 = {  # training/buffer_quantize.py
+    "3dmatch": "models/buffer_3dmatch_desc_int8.onnx",
+    "kitti": "models/buffer_kitti_desc_int8.onnx",
+}
+PRECISIONS = ("float32", "int8")
 REF_INPUTS = (
     ("normals", "tensor(float)", 2),
     ("points0", "tensor(float)", 2),
@@ -217,11 +225,36 @@ def pca_axes(offsets: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return z
 
 
+def _core():
+    """The C++ core when it is built (its patch kernels), else None (the numpy versions run)."""
+    from fastmac_exp import core
+
+    return core.core() if core.available() else None
+
+
 def cut_patches(
-    cloud: np.ndarray, tree: cKDTree, keypoints: np.ndarray, radius: float, k: int, workers: int = 1
+    cloud: np.ndarray,
+    tree: cKDTree,
+    keypoints: np.ndarray,
+    radius: float,
+    k: int,
+    workers: int = 1,
+    fast=True,
 ):
     """`(M, k, 3)` patches: the first k-1 points (in `cloud` order) within `radius` of each keypoint,
-    padded with the keypoint, the keypoint itself in the last slot."""
+    padded with the keypoint, the keypoint itself in the last slot. `fast`: the C++ core's kernel when it is
+    built (the same patches, ~10x faster on LiDAR scans, whose balls hold thousands of points)."""
+    core = _core() if fast else None
+    if core is not None:
+        try:
+            return core.buffer_cut_patches(
+                np.ascontiguousarray(cloud, dtype=np.float64),
+                np.ascontiguousarray(keypoints, dtype=np.float64),
+                float(radius),
+                int(k),
+            )
+        except ValueError:  # a cloud spanning more than 2^20 radii: the k-d tree below handles it
+            pass
     lists = tree.query_ball_point(keypoints, radius, return_sorted=True, workers=workers)
     out = np.repeat(np.asarray(keypoints, dtype=np.float64)[:, None, :], k, axis=1)
     for i, nb in enumerate(lists):
@@ -280,16 +313,29 @@ def cell_geometry(params: BufferParams) -> tuple[np.ndarray, np.float32, CellTab
     return centres, np.float32(r * r), table
 
 
-def group_cells(aligned: np.ndarray, params: BufferParams, chunk: int = 96) -> np.ndarray:
+def group_cells(aligned: np.ndarray, params: BufferParams, chunk: int = 96, fast=True) -> np.ndarray:
     """Upstream's sphere_query on aligned patches `(M, P, 3)` (units of des_r) -> `(M, cells * samples, 3)`
     float32: per cell (radial-major, then elevation, azimuth) the first `samples` patch points in slot
     order whose squared distance to the cell centre is below (delta / rad_n)^2 (float32, as the CUDA
-    kernel), empty slots 0, patch slot 0 contributing 0 (upstream masks index 0)."""
+    kernel), empty slots 0, patch slot 0 contributing 0 (upstream masks index 0). `fast`: the C++ core's
+    kernel when it is built (the same cells, one pass per keypoint instead of numpy's sort)."""
     centres, r2, table = cell_geometry(params)
     m_all, p_n = aligned.shape[:2]
     ncell, ns = params.cells, params.samples
     if m_all == 0:
         return np.zeros((0, ncell * ns, 3), dtype=np.float32)
+    core = _core() if fast else None
+    if core is not None:
+        return core.buffer_group_cells(
+            np.ascontiguousarray(aligned, dtype=np.float32),
+            centres,
+            float(r2),
+            table.ptr,
+            table.cells,
+            table.g,
+            float(np.float32(1.0 / table.h)),
+            ns,
+        )
     if chunk * ncell >= 65536:
         chunk = max(1, 65535 // ncell)
     pts = np.ascontiguousarray(aligned, dtype=np.float32)
@@ -336,7 +382,7 @@ def group_cells(aligned: np.ndarray, params: BufferParams, chunk: int = 96) -> n
 # ONNX models
 
 
-def _session(path: Path, threads: int):
+def _session(path: Path, threads: int, providers="auto"):
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
@@ -344,7 +390,7 @@ def _session(path: Path, threads: int):
         opts.intra_op_num_threads = threads
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return open_session(path, opts, providers, f"BUFFER model {path.name}")
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
         raise InputError(f"BUFFER model {path} could not be loaded: {exc}") from exc
 
@@ -412,10 +458,10 @@ def check_ref_contract(sess, path: Path) -> None:
 class BufferModel:
     """One family's Desc (+ Ref) sessions, their parameters and contracts."""
 
-    def __init__(self, desc_path: Path, ref_path: str | None, threads: int) -> None:
+    def __init__(self, desc_path: Path, ref_path: str | None, threads: int, providers="auto") -> None:
         self.desc_path = desc_path
         self.threads = threads
-        self.desc = _session(desc_path, threads)
+        self.desc = _session(desc_path, threads, providers)
         meta = self.desc.get_modelmeta().custom_metadata_map or {}
         if meta.get("fastmac.preprocess") != "buffer":
             raise InputError(
@@ -434,7 +480,7 @@ class BufferModel:
             p = Path(name)
             self.ref_path = p if p.is_absolute() or ref_path else desc_path.parent / p
             self.ref_path = resolve_model_path(self.ref_path)
-            self.ref = _session(self.ref_path, threads)
+            self.ref = _session(self.ref_path, threads, providers)
             check_ref_contract(self.ref, self.ref_path)
             rmeta = self.ref.get_modelmeta().custom_metadata_map or {}
             try:
@@ -454,6 +500,30 @@ class BufferModel:
 # the front end
 
 
+@dataclass
+class CloudState:
+    """One cloud prepared for description (in BUFFER's units): the shuffled patch cloud and its k-d tree,
+    the Ref network's points and unit axes (None when the axis is not the Ref's)."""
+
+    cloud: np.ndarray
+    tree: cKDTree
+    ref_points: np.ndarray | None
+    ref_axes: np.ndarray | None
+
+
+@dataclass
+class Described:
+    """The descriptors of one cloud's keypoints computed so far (`done` marks the rows filled)."""
+
+    desc: np.ndarray
+    done: np.ndarray
+
+
+def _digest(a: np.ndarray) -> str:
+    a = np.ascontiguousarray(a)
+    return hashlib.blake2b(a.tobytes(), digest_size=16).hexdigest() + str(a.shape)
+
+
 class BufferDescriptor(FeatureDescriptor):
     """BUFFER's published descriptor (Ref axis + cylindrical patch network) through onnxruntime.
 
@@ -464,19 +534,28 @@ class BufferDescriptor(FeatureDescriptor):
     `voxel_size` (None: the pair's), as FPFH. `scale`: BUFFER's lengths are multiplied by it (None: the
     pair's voxel size / the model's reference voxel). Matching, cap and labels as the other front ends
     (`max_correspondences` random subset, one-way nearest neighbour unless `mutual`).
-    `threads`: onnxruntime intra-op threads (0: all cores); `batch_size`: keypoints per run; `seed`:
+    `threads`: onnxruntime intra-op threads (0: all cores); `batch_size`: keypoints per run;
+    `execution_providers`: "auto" (onnxruntime-gpu's CUDA provider when there is one, else the CPU) or a
+    list such as ["cuda", "cpu"] (onnx_descriptor.session_providers: CPU fallback with a notice); `seed`:
     the shuffles (upstream shuffles at random; fixed here so a cloud is always described the same way);
     `progress`: a progress bar over each cloud's keypoints. `axis`: None = the model's (`ref` for the
     3DMatch model, `none` for KITTI); `pca` = upstream's own fallback (cal_Z_axis, the patch's normal),
-    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better).
+    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better). `precision`: "float32" (the
+    exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`: the Desc convolutions quantised
+    by training/buffer_quantize.py, about 3x faster; rows labelled `buffer_int8`). `cache_clouds`: how
+    many clouds' preparation and described keypoints are kept in memory (0: none), so a cloud shared by
+    pairs is described once. A pair describes only the source keypoints its correspondences keep (one-way
+    matching: the cap's random subset of the source keypoints, drawn as before) and every target
+    keypoint.
     """
 
     name = "buffer"
     default_graph_key = "spinnet"
     # said when a run starts (experiment.py), until the descriptor is fast
     cost_note = (
-        "BUFFER describes a pair in about 2-3 minutes on 2 CPU cores (the 8 default pairs took 19 min); "
-        "a pair in the correspondence cache is not described again; limit=N runs fewer"
+        "BUFFER describes a pair in about 6-23 s on a CPU core with INT8, about twice that in float32 (the 8 "
+        "default pairs: ~2 min from empty caches); a pair in the correspondence cache is not described "
+        "again; limit=N runs fewer"
     )
 
     def __init__(
@@ -484,6 +563,9 @@ class BufferDescriptor(FeatureDescriptor):
         model: str = "auto",
         model_3dmatch: str = SHIPPED["3dmatch"],
         model_kitti: str = SHIPPED["kitti"],
+        model_3dmatch_int8: str = SHIPPED_INT8["3dmatch"],
+        model_kitti_int8: str = SHIPPED_INT8["kitti"],
+        precision: str = "float32",
         ref_model: str | None = None,
         voxel_size: float | None = None,
         scale: float | None = None,
@@ -494,9 +576,15 @@ class BufferDescriptor(FeatureDescriptor):
         seed: int = 0,
         progress: bool = True,
         axis: str | None = None,
+        cache_clouds: int = 8,
+        execution_providers="auto",
         graph_key: str | None = None,
     ) -> None:
         super().__init__(graph_key)
+        if precision not in PRECISIONS:
+            raise InputError(f"buffer precision must be one of {PRECISIONS}, got {precision!r}")
+        if cache_clouds < 0:
+            raise InputError(f"buffer cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
         if voxel_size is not None and not voxel_size > 0:
             raise InputError(f"buffer voxel_size must be positive or None (the pair's), got {voxel_size}")
         if scale is not None and not scale > 0:
@@ -508,6 +596,11 @@ class BufferDescriptor(FeatureDescriptor):
         self.model = str(model)
         self.model_3dmatch = str(model_3dmatch)
         self.model_kitti = str(model_kitti)
+        self.model_3dmatch_int8 = str(model_3dmatch_int8)
+        self.model_kitti_int8 = str(model_kitti_int8)
+        self.precision = precision
+        if precision == "int8":
+            self.name = "buffer_int8"
         self.ref_model = ref_model
         self.voxel_size = voxel_size
         self.scale = scale
@@ -520,7 +613,11 @@ class BufferDescriptor(FeatureDescriptor):
         if axis not in (None, "ref", "pca", "none"):
             raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
         self.axis = axis
+        self.cache_clouds = int(cache_clouds)
+        self.execution_providers = execution_providers
         self._models: dict[str, BufferModel] = {}
+        self._states: OrderedDict[tuple, CloudState] = OrderedDict()
+        self._described: OrderedDict[tuple, Described] = OrderedDict()
         self.last_timings: dict[str, float] = {}
         self.timings_log: list[dict] = []  # one entry a described cloud (the last 1000)
         if self.model != "auto":
@@ -529,20 +626,42 @@ class BufferDescriptor(FeatureDescriptor):
     def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
         state = self.__dict__.copy()
         state["_models"] = {}
+        state["_states"], state["_described"] = OrderedDict(), OrderedDict()
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
 
     def model_path(self, which: str) -> Path:
-        """The Desc model file for "3dmatch", "kitti" or a path."""
-        return resolve_model_path(
-            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
-        )
+        """The Desc model file for "3dmatch", "kitti" or a path, at `precision` (int8: the shipped int8 file,
+        or for a path `<stem>_int8.onnx` beside it)."""
+        if self.precision == "float32":
+            return resolve_model_path(
+                {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
+            )
+        named = {"3dmatch": self.model_3dmatch_int8, "kitti": self.model_kitti_int8}.get(which)
+        if named is None:
+            path = resolve_model_path(which)
+            named = str(path.with_name(path.stem + "_int8.onnx"))
+        try:
+            return resolve_model_path(named)
+        except InputError as exc:
+            raise InputError(
+                f"{exc}; the int8 BUFFER models are made by `python -m training.buffer_quantize`"
+            ) from exc
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
-            self._models[which] = BufferModel(self.model_path(which), self.ref_model, self.threads)
+            model = BufferModel(
+                self.model_path(which), self.ref_model, self.threads, self.execution_providers
+            )
+            found = model.metadata.get("fastmac.precision", "float32")
+            if found != self.precision:
+                raise InputError(
+                    f"BUFFER model {model.desc_path} is {found} (metadata fastmac.precision), "
+                    f"descriptor.precision is {self.precision}"
+                )
+            self._models[which] = model
         return self._models[which]
 
     def model_for(self, family: str) -> BufferModel:
@@ -556,58 +675,112 @@ class BufferDescriptor(FeatureDescriptor):
 
     # -- description
 
-    def _axes(self, model: BufferModel, cloud: np.ndarray, keypoints: np.ndarray, rng) -> np.ndarray:
-        p = model.params
-        pts = voxel_down(cloud, p.voxel_size_0)
-        pts = pts[rng.permutation(len(pts))][: p.max_points]
-        if len(pts) < MIN_POINTS:
-            raise InputError(f"only {len(pts)} points at BUFFER's Ref grid ({p.voxel_size_0} m, scaled)")
-        feed = ref_inputs(pts, oriented_normals(pts), model.voxel0, model.conv_radius, model.limits)
-        axis = np.asarray(model.ref.run(None, feed)[0], dtype=np.float64)
-        axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
-        _, nearest = cKDTree(pts).query(keypoints)
-        ax = axis[nearest]
-        flip = np.einsum("ij,ij->i", ax, keypoints) > 0
-        ax[flip] *= -1
-        return ax
-
-    def describe(
-        self, model: BufferModel, points: np.ndarray, keypoints: np.ndarray, scale: float, what: str = "cloud"
-    ) -> np.ndarray:
-        """Descriptors `(M, D)` float32 of `keypoints` (in the cloud's units) of the cloud `points`."""
-        import time
-
-        from tqdm import tqdm
-
-        p = model.params
+    def _state(self, model: BufferModel, how: str, pts: np.ndarray, key: tuple) -> tuple[CloudState, dict]:
+        """The cloud prepared for description (cached by content) and the seconds it took (0 if cached)."""
+        state = self._states.get(key)
+        if state is not None:
+            self._states.move_to_end(key)
+            return state, {"clouds_s": 0.0, "ref_s": 0.0}
         t0 = time.perf_counter()
+        p = model.params
         rng = np.random.default_rng(self.seed)
-        pts = np.asarray(points, dtype=np.float64) / scale
-        kp = np.asarray(keypoints, dtype=np.float64) / scale
         cloud = voxel_down(pts, p.downsample)
         cloud = cloud[rng.permutation(len(cloud))]
+        ref_pts = ref_axes = None
         t1 = time.perf_counter()
+        if how == "ref":
+            ref_pts = voxel_down(cloud, p.voxel_size_0)
+            ref_pts = ref_pts[rng.permutation(len(ref_pts))][: p.max_points]
+            if len(ref_pts) < MIN_POINTS:
+                raise InputError(
+                    f"only {len(ref_pts)} points at BUFFER's Ref grid ({p.voxel_size_0} m, scaled)"
+                )
+            feed = ref_inputs(
+                ref_pts, oriented_normals(ref_pts), model.voxel0, model.conv_radius, model.limits
+            )
+            ref_axes = np.asarray(model.ref.run(None, feed)[0], dtype=np.float64)
+            ref_axes /= np.maximum(np.linalg.norm(ref_axes, axis=1, keepdims=True), 1e-12)
+        state = CloudState(cloud, cKDTree(cloud), ref_pts, ref_axes)
+        self._remember(self._states, key, state)
+        return state, {"clouds_s": t1 - t0, "ref_s": time.perf_counter() - t1}
+
+    def _remember(self, cache: OrderedDict, key, value) -> None:
+        if self.cache_clouds:
+            cache[key] = value
+            while len(cache) > self.cache_clouds:
+                cache.popitem(last=False)
+
+    def describe(
+        self,
+        model: BufferModel,
+        points: np.ndarray,
+        keypoints: np.ndarray,
+        scale: float,
+        what: str = "cloud",
+        rows: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Descriptors float32 of `keypoints` (in the cloud's units) of the cloud `points`: `(M, D)`, or
+        `(len(rows), D)` for the keypoints `rows` only. A keypoint's descriptor depends on it and the cloud
+        alone, so the described rows of the last `cache_clouds` clouds are kept and never computed twice
+        (a cloud that is the target of several pairs, or the source here and the target there)."""
+        p = model.params
+        t0 = time.perf_counter()
         how = self.axis or p.align
         if how == "ref" and model.ref is None:
             raise InputError(f"BUFFER model {model.desc_path} has no Ref model; use axis=pca or none")
-        axes = self._axes(model, cloud, kp, rng) if how == "ref" else None
-        t2 = time.perf_counter()
-        tree = cKDTree(cloud)
-        m = len(kp)
-        bs = self.batch_size
+        pts = np.asarray(points, dtype=np.float64) / scale
+        kp = np.asarray(keypoints, dtype=np.float64) / scale
+        cloud_key = (str(model.desc_path), how, float(scale), self.seed, _digest(pts))
+        state, prep = self._state(model, how, pts, cloud_key)
+        key = (cloud_key, _digest(kp))
+        entry = self._described.get(key)
+        if entry is None:
+            entry = Described(
+                np.zeros((len(kp), model.output_dim or 32), np.float32), np.zeros(len(kp), bool)
+            )
+            self._remember(self._described, key, entry)
+        else:
+            self._described.move_to_end(key)
+        want = np.arange(len(kp)) if rows is None else np.asarray(rows, dtype=np.int64)
+        todo = np.unique(want[~entry.done[want]])
+        timings = self._embed(model, state, kp, todo, how, entry, what)
+        self.last_timings = {
+            **prep,
+            **timings,
+            "total_s": time.perf_counter() - t0,
+            "keypoints": len(todo),
+            "reused": len(want) - len(todo),
+            "what": what,
+        }
+        self.timings_log = [*self.timings_log[-999:], self.last_timings]
+        return entry.desc[want].copy()
+
+    def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
+        """Describes the keypoints `kp[todo]` into `entry` (unit rows); the stage seconds."""
+        from tqdm import tqdm
+
+        p = model.params
+        sel = kp[todo]
+        axes = None
+        if how == "ref" and len(sel):
+            _, nearest = cKDTree(state.ref_points).query(sel)
+            axes = state.ref_axes[nearest]
+            flip = np.einsum("ij,ij->i", axes, sel) > 0
+            axes[flip] *= -1
+        m, bs = len(sel), self.batch_size
         starts = list(range(0, m, bs))
 
         def prepare(s: int) -> np.ndarray:
-            k = kp[s : s + bs]
-            patch = cut_patches(cloud, tree, k, p.des_r, p.patch_points, workers=1) - k[:, None, :]
+            k = sel[s : s + bs]
+            patch = (
+                cut_patches(state.cloud, state.tree, k, p.des_r, p.patch_points, workers=1) - k[:, None, :]
+            )
             if how == "pca":
                 patch = patch @ align_rotations(pca_axes(patch, k))
             elif axes is not None:
                 patch = patch @ align_rotations(axes[s : s + bs])
             return group_cells(patch / p.des_r, p)
 
-        d = model.output_dim or 32
-        out = np.zeros((m, d), dtype=np.float32)
         bar = tqdm(
             total=m, desc=f"BUFFER {what}", unit="kp", leave=False, disable=not self.progress or m < bs * 4
         )
@@ -622,32 +795,26 @@ class BufferDescriptor(FeatureDescriptor):
                 if n_i + 1 < len(starts):
                     pending = pool.submit(prepare, starts[n_i + 1])
                 y = model.desc.run(None, {model.input_name: x})[0]
-                tc = time.perf_counter()
                 t_prep += tb - ta
-                t_run += tc - tb
-                if y.ndim != 2 or y.shape[0] != len(x):
+                t_run += time.perf_counter() - tb
+                if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
                     raise InputError(
-                        f"BUFFER model {model.desc_path} returned {y.shape} for {len(x)} patches"
+                        f"BUFFER model {model.desc_path} returned {y.shape} for {len(x)} patches, expected "
+                        f"({len(x)}, {entry.desc.shape[1]})"
                     )
-                if y.shape[1] != d:
-                    out = np.zeros((m, y.shape[1]), dtype=np.float32) if s == 0 else out
-                    d = y.shape[1]
-                out[s : s + len(y)] = y
+                norm = np.linalg.norm(y, axis=1, keepdims=True)
+                entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
+                entry.done[todo[s : s + len(y)]] = True
                 bar.update(len(y))
         bar.close()
-        norm = np.linalg.norm(out, axis=1, keepdims=True)
-        out /= np.where(norm > 0, norm, 1.0)
-        self.last_timings = {
-            "clouds_s": t1 - t0,
-            "ref_s": t2 - t1,
-            "wait_for_patches_s": t_prep,
-            "network_s": t_run,
-            "total_s": time.perf_counter() - t0,
-            "keypoints": m,
-            "what": what,
-        }
-        self.timings_log = [*self.timings_log[-999:], self.last_timings]
-        return out
+        return {"wait_for_patches_s": t_prep, "network_s": t_run}
+
+    def scale_for(self, model: BufferModel, voxel: float | None) -> float:
+        if self.scale is not None:
+            return self.scale
+        if voxel and voxel > 0:
+            return voxel / model.params.reference_voxel
+        raise InputError("no voxel size to scale BUFFER's lengths by; set descriptor.scale")
 
     def features(
         self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch", scale=None
@@ -655,23 +822,21 @@ class BufferDescriptor(FeatureDescriptor):
         """Keypoints `(M, 3)` (voxel downsampling at `voxel`) and their descriptors `(M, D)` float32."""
         pts, kp = keypoints(points, voxel, what)
         model = self.model_for(family)
-        if scale is None:
-            scale = self.scale if self.scale is not None else voxel / model.params.reference_voxel
+        scale = self.scale_for(model, voxel) if scale is None else scale
         return kp, self.describe(model, pts, kp, scale, what)
 
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
         model = self.model_for(pair.family)
-        if self.scale is not None:
-            scale = self.scale
-        elif pair.voxel_size and pair.voxel_size > 0:
-            scale = pair.voxel_size / model.params.reference_voxel
-        else:
+        if self.scale is None and not (pair.voxel_size and pair.voxel_size > 0):
             raise InputError(f"pair {pair.name!r} has no voxel size; set descriptor.scale for BUFFER")
-        return correspondences_from_features(_Bound(self, pair.family, scale), pair, rng, match_descriptors)
+        scale = self.scale_for(model, pair.voxel_size)
+        return correspondences_from_kept_sources(
+            _Bound(self, pair.family, scale), pair, rng, match_descriptors
+        )
 
 
 class _Bound(FeatureDescriptor):
-    """The descriptor as `correspondences_from_features` sees it, with the pair's family and scale."""
+    """The descriptor as `matching` sees it, with the pair's family and scale."""
 
     def __init__(self, desc: BufferDescriptor, family: str, scale: float) -> None:
         super().__init__(desc.graph_key)
@@ -683,6 +848,12 @@ class _Bound(FeatureDescriptor):
 
     def features(self, points, voxel, what="cloud"):
         return self.desc.features(points, voxel, what=what, family=self.family, scale=self.scale)
+
+    def keypoints(self, points, voxel, what="cloud"):
+        return keypoints(points, voxel, what)
+
+    def features_of(self, cloud, kp, rows, what="cloud"):
+        return self.desc.describe(self.desc.model_for(self.family), cloud, kp, self.scale, what, rows)
 
 
 __all__ = [

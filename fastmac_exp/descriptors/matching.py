@@ -19,21 +19,55 @@ def correspondences_from_features(
     """Keypoints + features of both clouds via `descriptor.features(points, voxel, what=...)`, matched by
     `match(src_f, tgt_f, mutual) -> (src_idx, tgt_idx, distance)`, capped at `descriptor.max_correspondences`
     by a random subset drawn with `rng`, scored 1 - distance and labelled by the pair's GT."""
+    _need_clouds(descriptor, pair)
+    voxel = descriptor.voxel_size if descriptor.voxel_size is not None else pair.voxel_size
+    src_kp, src_f = descriptor.features(pair.src_cloud, voxel, what=f"pair {pair.name!r}: source cloud")
+    tgt_kp, tgt_f = descriptor.features(pair.tgt_cloud, voxel, what=f"pair {pair.name!r}: target cloud")
+    si, ti, dist = match(src_f, tgt_f, descriptor.mutual)
+    keep = capped_rows(len(si), descriptor.max_correspondences, rng)
+    if keep is not None:
+        si, ti, dist = si[keep], ti[keep], dist[keep]
+    corr = Correspondences(src=src_kp[si], tgt=tgt_kp[ti], scores=1.0 - dist)
+    return pair.label(corr)
+
+
+def correspondences_from_kept_sources(
+    descriptor, pair: Pair, rng: np.random.Generator, match: Matcher
+) -> Correspondences:
+    """`correspondences_from_features` for a descriptor that can describe chosen keypoints only
+    (`keypoints(points, voxel, what) -> (cloud, keypoints)`, `features_of(cloud, keypoints, rows, what)`):
+    with one-way matching every source keypoint gives one correspondence, so the cap's subset (the same
+    draw from `rng`) is known before anything is described and only those source keypoints are; the
+    output is the same. Mutual matching needs every descriptor and takes the plain path."""
+    if descriptor.mutual:
+        return correspondences_from_features(descriptor, pair, rng, match)
+    _need_clouds(descriptor, pair)
+    voxel = descriptor.voxel_size if descriptor.voxel_size is not None else pair.voxel_size
+    what = f"pair {pair.name!r}: source cloud"
+    cloud, src_kp = descriptor.keypoints(pair.src_cloud, voxel, what)
+    si = capped_rows(len(src_kp), descriptor.max_correspondences, rng)
+    si = np.arange(len(src_kp)) if si is None else si
+    src_f = descriptor.features_of(cloud, src_kp, si, what)
+    tgt_kp, tgt_f = descriptor.features(pair.tgt_cloud, voxel, what=f"pair {pair.name!r}: target cloud")
+    rows, ti, dist = match(src_f, tgt_f, False)
+    corr = Correspondences(src=src_kp[si[rows]], tgt=tgt_kp[ti], scores=1.0 - dist)
+    return pair.label(corr)
+
+
+def capped_rows(n: int, cap: int, rng: np.random.Generator) -> np.ndarray | None:
+    """The rows a cap keeps of `n` correspondences: a sorted random subset of `cap` drawn with `rng`, or None
+    (all) when `cap` is 0 or not below `n`."""
+    if cap and n > cap:
+        return np.sort(rng.choice(n, size=cap, replace=False))
+    return None
+
+
+def _need_clouds(descriptor, pair: Pair) -> None:
     if pair.src_cloud is None or pair.tgt_cloud is None:
         raise InputError(
             f"pair {pair.name!r}: the {descriptor.name} descriptor needs both point clouds, but "
             f"{'the source' if pair.src_cloud is None else 'the target'} cloud is missing"
         )
-    voxel = descriptor.voxel_size if descriptor.voxel_size is not None else pair.voxel_size
-    src_kp, src_f = descriptor.features(pair.src_cloud, voxel, what=f"pair {pair.name!r}: source cloud")
-    tgt_kp, tgt_f = descriptor.features(pair.tgt_cloud, voxel, what=f"pair {pair.name!r}: target cloud")
-    si, ti, dist = match(src_f, tgt_f, descriptor.mutual)
-    cap = descriptor.max_correspondences
-    if cap and len(si) > cap:
-        keep = np.sort(rng.choice(len(si), size=cap, replace=False))
-        si, ti, dist = si[keep], ti[keep], dist[keep]
-    corr = Correspondences(src=src_kp[si], tgt=tgt_kp[ti], scores=1.0 - dist)
-    return pair.label(corr)
 
 
 def match_descriptors(

@@ -57,6 +57,64 @@ log = logging.getLogger(__name__)
 
 DEFAULT_MODEL = "models/fcgf_lite.onnx"  # relative to the package (fastmac_exp/models/)
 META_PREFIX = "fastmac."
+CPU = "CPUExecutionProvider"
+PROVIDER_ALIASES = {"cpu": CPU, "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
+
+
+def session_providers(requested, what: str = "ONNX model") -> list[str]:
+    """The onnxruntime execution providers for `requested`: "auto" (or None) = CUDA when this onnxruntime
+    has it (onnxruntime-gpu), else the CPU; or provider names in order of preference ("cuda", "tensorrt",
+    "cpu" or onnxruntime's own names such as "CUDAExecutionProvider"). Providers onnxruntime lacks are
+    dropped with a one-line notice; the CPU always comes last as the fallback."""
+    import onnxruntime as ort
+
+    have = ort.get_available_providers()
+    auto = requested is None or requested == "auto"
+    if auto:
+        want = [PROVIDER_ALIASES["cuda"], CPU]
+    else:
+        want = [requested] if isinstance(requested, str) else list(requested)
+        want = [PROVIDER_ALIASES.get(str(p).lower(), str(p)) for p in want]
+    chosen = [p for p in want if p in have]
+    if CPU not in chosen:
+        chosen.append(CPU)
+    missing = [p for p in want if p not in have and p != CPU]
+    if missing and not auto:
+        log.warning(
+            "%s: onnxruntime %s has no %s (it has %s); running on %s",
+            what,
+            ort.__version__,
+            ", ".join(missing),
+            ", ".join(have),
+            ", ".join(chosen),
+        )
+    return chosen
+
+
+def open_session(path: Path, opts, providers, what: str):
+    """An onnxruntime session on the first of `providers` that starts (session_providers); a GPU provider
+    that fails to start (no device, missing CUDA libraries) falls back to the CPU with a one-line notice."""
+    import onnxruntime as ort
+
+    chosen = session_providers(providers, what)
+    try:
+        sess = ort.InferenceSession(str(path), opts, providers=chosen)
+    except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file or device
+        if chosen == [CPU]:
+            raise
+        log.warning(
+            "%s: %s did not start (%s); running on the CPU", what, chosen[0], str(exc).splitlines()[0]
+        )
+        sess = ort.InferenceSession(str(path), opts, providers=[CPU])
+    dropped = [p for p in chosen if p not in sess.get_providers()]
+    if dropped:
+        log.warning(
+            "%s: onnxruntime did not start %s; running on %s",
+            what,
+            ", ".join(dropped),
+            sess.get_providers()[0],
+        )
+    return sess
 
 
 def resolve_model_path(model: str | os.PathLike) -> Path:
@@ -88,7 +146,9 @@ class OnnxDescriptor(FeatureDescriptor):
     `max_correspondences` caps the output by a random subset drawn with the call's rng (0 = no cap).
     `k`, `radius_factor`, `support_factor` override the model's metadata (normally leave them None).
     `threads`: onnxruntime intra-op threads (default 1, the fastest on this shared 2-core machine; 0: all
-    cores); `batch_size`: patches per onnxruntime run.
+    cores); `batch_size`: patches per onnxruntime run. `execution_providers`: "auto" (a GPU through
+    onnxruntime-gpu's CUDA provider when there is one, else the CPU) or a list such as ["cuda", "cpu"]
+    (`session_providers`); a provider that is missing or fails to start falls back to the CPU with a notice.
     `name` (the results rows' descriptor label) is the model's `fastmac.name` metadata, else its file
     name without extension ("fcgf_lite" for the shipped model). `alias`: the config name this front end
     was reached under when that is not the model's name (conf/descriptor/fcgf.yaml); a warning says so.
@@ -109,6 +169,7 @@ class OnnxDescriptor(FeatureDescriptor):
         threads: int = 1,
         batch_size: int = 8192,
         alias: str | None = None,
+        execution_providers="auto",
         graph_key: str | None = None,
     ) -> None:
         super().__init__(graph_key)
@@ -127,6 +188,7 @@ class OnnxDescriptor(FeatureDescriptor):
         self.mutual = bool(mutual)
         self.threads = int(threads)
         self.batch_size = int(batch_size)
+        self.execution_providers = execution_providers
         self._overrides = {"k": k, "radius_factor": radius_factor, "support_factor": support_factor}
         self._session = None
         self._open()
@@ -150,7 +212,9 @@ class OnnxDescriptor(FeatureDescriptor):
         if self.threads:
             opts.intra_op_num_threads = self.threads
         try:
-            sess = ort.InferenceSession(str(self.model_path), opts, providers=["CPUExecutionProvider"])
+            sess = open_session(
+                self.model_path, opts, self.execution_providers, f"descriptor {self.model_path.name}"
+            )
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
             raise InputError(f"ONNX descriptor model {self.model_path} could not be loaded: {exc}") from exc
         meta = sess.get_modelmeta().custom_metadata_map or {}

@@ -1,0 +1,113 @@
+// BUFFER's patch preparation (buffer_patches.hpp). numpy's version sorts a radius query's hits and groups
+// points into cells by a sort over (keypoint, cell); here both are one pass per keypoint.
+#include "buffer_patches.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <stdexcept>
+#include <utility>
+#include <vector>
+
+namespace fastmac {
+
+namespace {
+
+constexpr int64_t kAxisBits = 21;
+constexpr int64_t kAxisCells = int64_t(1) << (kAxisBits - 1);  // cells each side of the origin cell
+
+int64_t cell_key(int64_t x, int64_t y, int64_t z) {
+    return ((x + kAxisCells) << (2 * kAxisBits)) | ((y + kAxisCells) << kAxisBits) | (z + kAxisCells);
+}
+
+}  // namespace
+
+void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints, int64_t m, double radius,
+                        int64_t k, double *out) {
+    const double r2 = radius * radius;
+    const double inv = 1.0 / radius;
+    // cloud points sorted by grid cell (cell size = radius), index order kept within a cell
+    std::vector<std::pair<int64_t, int64_t>> keyed(n);
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t c[3];
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor(cloud[3 * i + d] * inv);
+            if (!(std::fabs(f) < double(kAxisCells - 1)))
+                throw std::invalid_argument("buffer_cut_patches: the cloud spans too many cells of the radius");
+            c[d] = int64_t(f);
+        }
+        keyed[i] = {cell_key(c[0], c[1], c[2]), i};
+    }
+    std::sort(keyed.begin(), keyed.end());
+    std::vector<int64_t> keys(n), order(n);
+    for (int64_t i = 0; i < n; ++i) keys[i] = keyed[i].first, order[i] = keyed[i].second;
+    std::vector<int64_t> hits;
+    const int64_t take_max = k - 1;
+    for (int64_t j = 0; j < m; ++j) {
+        const double *q = keypoints + 3 * j;
+        double *o = out + 3 * k * j;
+        hits.clear();
+        int64_t c[3];
+        bool inside = true;
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor(q[d] * inv);
+            inside = inside && std::fabs(f) < double(kAxisCells - 2);
+            c[d] = inside ? int64_t(f) : 0;
+        }
+        if (inside) {
+            for (int64_t dx = -1; dx <= 1; ++dx)
+                for (int64_t dy = -1; dy <= 1; ++dy)
+                    for (int64_t dz = -1; dz <= 1; ++dz) {
+                        const int64_t key = cell_key(c[0] + dx, c[1] + dy, c[2] + dz);
+                        auto lo = std::lower_bound(keys.begin(), keys.end(), key);
+                        for (auto it = lo; it != keys.end() && *it == key; ++it) {
+                            const int64_t i = order[it - keys.begin()];
+                            const double *p = cloud + 3 * i;
+                            const double ex = p[0] - q[0], ey = p[1] - q[1], ez = p[2] - q[2];
+                            if (ex * ex + ey * ey + ez * ez <= r2) hits.push_back(i);
+                        }
+                    }
+        }
+        int64_t take = int64_t(hits.size());
+        if (take > take_max) {
+            std::nth_element(hits.begin(), hits.begin() + take_max, hits.end());
+            take = take_max;
+        }
+        std::sort(hits.begin(), hits.begin() + take);
+        for (int64_t t = 0; t < take; ++t) std::memcpy(o + 3 * t, cloud + 3 * hits[t], 3 * sizeof(double));
+        for (int64_t t = take; t < k; ++t) std::memcpy(o + 3 * t, q, 3 * sizeof(double));
+    }
+}
+
+void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                        const int64_t *ptr, const int16_t *cells, int64_t g, float inv_h, int64_t ns, float *out) {
+    std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
+    std::vector<int64_t> count(ncell);
+    const float one = 1.0f;
+    for (int64_t j = 0; j < m; ++j) {
+        std::fill(count.begin(), count.end(), 0);
+        float *o = out + j * ncell * ns * 3;
+        for (int64_t s = 0; s < p; ++s) {
+            const float *q = pts + (j * p + s) * 3;
+            int64_t v[3];
+            for (int d = 0; d < 3; ++d) {
+                const float f = (q[d] + one) * inv_h;
+                int64_t i = int64_t(int32_t(f));  // numpy's astype(int32): truncation
+                v[d] = std::min<int64_t>(std::max<int64_t>(i, 0), g - 1);
+            }
+            const int64_t vox = (v[0] * g + v[1]) * g + v[2];
+            for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
+                const int64_t c = cells[t];
+                const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
+                const float d2 = dx * dx + dy * dy + dz * dz;
+                if (d2 < r2 && count[c] < ns) {
+                    float *slot = o + (c * ns + count[c]) * 3;
+                    if (s != 0) slot[0] = q[0], slot[1] = q[1], slot[2] = q[2];
+                    ++count[c];
+                }
+            }
+        }
+    }
+}
+
+}  // namespace fastmac

@@ -1,0 +1,23 @@
+// BUFFER's patch preparation (fastmac_exp.descriptors.buffer: cut_patches, group_cells) in C++; the numpy
+// versions there are the reference (tests/test_buffer_descriptor.py holds both equal).
+#pragma once
+
+#include <cstdint>
+
+namespace fastmac {
+
+// out (m x k x 3): for keypoint j the first k - 1 points of `cloud` (n x 3, in index order) within
+// `radius` (squared distance <= radius^2, as scipy's query_ball_point), padded with the keypoint, the
+// keypoint itself in the last slot. Throws std::invalid_argument when the cloud spans more than 2^20
+// cells of `radius` along an axis.
+void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints, int64_t m, double radius,
+                        int64_t k, double *out);
+
+// out (m x ncell x ns x 3, zeroed here): upstream's sphere_query on aligned patches `pts` (m x p x 3,
+// float32, units of des_r): per cell the first `ns` patch points in slot order with squared distance to
+// the cell centre below r2 (float32 arithmetic as numpy's), patch slot 0 contributing zeros. Candidate
+// cells per point from the CSR table (ptr over a g^3 grid of [-1, 1]^3, cells ascending in a voxel).
+void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                        const int64_t *ptr, const int16_t *cells, int64_t g, float inv_h, int64_t ns, float *out);
+
+}  // namespace fastmac
