@@ -377,13 +377,20 @@ def test_same_output_as_before_the_speed_work(family, scale):
     corr = d(pair, np.random.default_rng(0))
     src_log, tgt_log = d.timings_log
     assert (src_log["keypoints"], tgt_log["keypoints"]) == (300, 1837)  # 300 of the 1,538 source keypoints
-    np.testing.assert_array_equal(corr.src, gold[f"{family}_src"])
-    np.testing.assert_array_equal(corr.tgt, gold[f"{family}_tgt"])
+    # the same rows: the generated target cloud itself differs in its last bits under another BLAS kernel
+    # (CI's second pass, OPENBLAS_CORETYPE=Prescott), hence a tolerance far below any point spacing
+    np.testing.assert_allclose(corr.src, gold[f"{family}_src"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(corr.tgt, gold[f"{family}_tgt"], rtol=0, atol=1e-12)
     np.testing.assert_allclose(corr.scores, gold[f"{family}_scores"], atol=1e-4)
     s = 1.0 if scale is None else scale
     for side, cloud in (("src", pair.src_cloud), ("tgt", pair.tgt_cloud)):
         _, f = d.features(cloud, 0.08, family=family, scale=s)
-        np.testing.assert_allclose(f[gold[f"{family}_{side}_rows"]], gold[f"{family}_{side}_desc"], atol=1e-4)
+        got, want = f[gold[f"{family}_{side}_rows"]], gold[f"{family}_{side}_desc"]
+        # to 1e-4 row by row; under another BLAS kernel (CI's OPENBLAS_CORETYPE=Prescott pass) the frozen
+        # cloud moves in its last bits and a keypoint near a cell border may move by ~2e-4, never more than
+        # 1e-3 (a wrong descriptor is off by ~0.1)
+        off = np.abs(got - want).max(axis=1)
+        assert np.mean(off > 1e-4) <= 0.01 and off.max() < 1e-3, (np.mean(off > 1e-4), off.max())
     assert d.timings_log[-1]["keypoints"] == 0  # the target was described whole by the pair: all reused
 
 
