@@ -181,6 +181,13 @@ def ply_header(p: Path) -> tuple[str, list[tuple[str, int, int | None]], int]:
     return fmt, [tuple(e) for e in elements], body
 
 
+def data_lines(p: Path, start: int) -> int:
+    """Non-empty lines of p after byte `start` (an ascii body's rows)."""
+    with open(p, "rb") as f:
+        f.seek(start)
+        return sum(1 for line in f if line.strip())
+
+
 def check_ply_body(p: Path) -> int | None:
     """The vertex count a PLY header declares (None: no vertex element); a body too short for the vertices
     (a truncated file, which Open3D fills with uninitialised rows) is an InputError."""
@@ -192,10 +199,7 @@ def check_ply_body(p: Path) -> int | None:
         if name != "vertex":
             continue
         if fmt == "ascii":
-            with open(p, "rb") as f:
-                f.seek(start)
-                have = sum(1 for line in f if line.strip())
-            if have < need_lines:
+            if (have := data_lines(p, start)) < need_lines:
                 raise InputError(
                     f"{p}: truncated: its header declares {count} vertices, the file has {have} data lines"
                 )
@@ -235,14 +239,8 @@ def check_pcd_body(p: Path) -> int | None:
             f"{p}: truncated: its header declares {points} points ({points * row} bytes), the file has "
             f"{have} bytes after the header"
         )
-    if kind == "ascii":
-        with open(p, "rb") as f:
-            f.seek(pos)
-            have = sum(1 for line in f if line.strip())
-        if have < points:
-            raise InputError(
-                f"{p}: truncated: its header declares {points} points, the file has {have} lines"
-            )
+    if kind == "ascii" and (have := data_lines(p, pos)) < points:
+        raise InputError(f"{p}: truncated: its header declares {points} points, the file has {have} lines")
     return points
 
 
