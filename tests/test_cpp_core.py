@@ -167,6 +167,39 @@ def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
         assert 0.8 * n_in <= cores[mode][0] <= 1.3 * n_in and len(set(cores[mode])) == 1, cores
 
 
+def test_mac_products_run_in_float32_in_large_cores_only(monkeypatch):
+    """MAC's products (G, the clustering coefficients' sums) stay float64 in cores under 1,024 nodes and
+    run in float32 in larger ones (the near-cliques FastMAC keeps at 50,000, where the product is MAC's
+    whole cost; the reference computes G in float32, spec 2.3): G within float32's rounding of dense
+    numpy, and MAC's pose that of the float64 products."""
+    src, tgt, r, t = clustered(2400, 0.5, 0.004, 11)
+    gp = ("quadratic", 0.06, 0.1, 0.8)
+    w = dense_w(src, tgt, *gp)
+    i, j = np.nonzero(np.triu(w, 1))
+    g = (w * (w @ w))[i, j]
+    out, res = {}, {}
+    for mode in ("double", "auto"):
+        monkeypatch.setenv("FASTMAC_MAC_PRECISION", mode)
+        out[mode] = core.graph_edges(src, tgt, *gp)
+        res[mode] = core.mac(src, tgt, *gp, 0.1)
+    assert out["auto"]["dense_core"] >= 1024, out["auto"]["dense_core"]
+    np.testing.assert_allclose(out["double"]["g"], g, rtol=1e-12)
+    np.testing.assert_allclose(out["auto"]["g"], g, rtol=2e-6)
+    pos = g > 0
+    gap = np.abs(out["auto"]["g"][pos] / g[pos] - 1).max()
+    assert 1e-12 < gap < 2e-6, gap  # float32 ran, within its rounding
+    rot = rotation_error_deg(res["auto"]["pose"][:3, :3], res["double"]["pose"][:3, :3])
+    assert rot < 1e-3 and np.linalg.norm(res["auto"]["pose"][:3, 3] - res["double"]["pose"][:3, 3]) < 1e-4
+    assert rotation_error_deg(res["auto"]["pose"][:3, :3], r) < 2.0
+    # a smaller core keeps float64: the same G as with the switch
+    src, tgt, _, _ = clustered(900, 0.35, 0.004, 0)
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "auto")
+    small = core.graph_edges(src, tgt, *gp)
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")
+    assert 128 <= small["dense_core"] < 1024
+    np.testing.assert_array_equal(small["g"], core.graph_edges(src, tgt, *gp)["g"])
+
+
 @pytest.mark.parametrize("n,ratio", [(600, 0.42), (1100, 0.3), (1500, 0.27)])
 def test_packed_products_at_tile_edges_and_thread_counts(monkeypatch, n, ratio):
     """Cores of sizes that are not multiples of the micro-kernels' tiles (12 x 32 floats, 12 x 16 doubles,

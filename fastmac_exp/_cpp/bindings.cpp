@@ -133,7 +133,8 @@ nb::dict graph_signals(const Points &src, const Points &tgt, const std::string &
         nb::gil_scoped_release nogil;
         fastmac::Csr W = fastmac::first_order(src.data(), tgt.data(), n, gp, num_threads);
         int64_t dense_core = 0;
-        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core, single);
+        std::vector<double> G = fastmac::second_order(W, num_threads, &dense_core,
+                                                               single ? fastmac::Precision::Single : fastmac::Precision::Double);
         s = fastmac::graph_signals(W, G, self_loops, num_threads);
         s.dense_core = dense_core;
     }

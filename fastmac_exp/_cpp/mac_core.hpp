@@ -77,14 +77,25 @@ struct Csr {
 // The first-order graph W (spec 2.1-2.2). src, tgt: row-major (n, 3).
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads);
 
+// The arithmetic of the dense core's matrix product (masked_square.cpp; the sums outside the core are
+// always float64).
+//   Double: float64 everywhere (tests, and the reference for the others).
+//   Single: float32 in the core, and the triangle listing on large graphs (the sampler's graph; spec 7.2
+//           computes it in float32).
+//   Mac:    MAC's graphs (G and the clustering coefficients' sums): float64, except float32 in cores of
+//           at least kSingleCore nodes, where the product's m^3/2 multiply-adds are MAC's whole cost (the
+//           reference computes G in float32 too, spec 2.3). FASTMAC_MAC_PRECISION=double keeps float64.
+enum class Precision { Double, Single, Mac };
+constexpr int64_t kSingleCore = 1024;
+
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
-// single: the dense core's products in float32 (the sampler's graph; spec 7.2 computes it in float32).
-std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr, bool single = false);
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr,
+                                 Precision precision = Precision::Mac);
 
 // S_ij = V_ij * sum_k V_ik V_kj for every stored entry of the pattern V (values vals, aligned with
 // V.col; zero values are allowed and give 0). Dense dot products inside the dense core (masked_square.cpp).
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
-                                  int64_t *core_size = nullptr, bool single = false);
+                                  int64_t *core_size = nullptr, Precision precision = Precision::Mac);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);

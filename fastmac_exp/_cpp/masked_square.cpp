@@ -22,7 +22,7 @@
 //    outgrows the cache, lists the triangles instead (forward_products below).
 //
 // The sums are the same as the gather kernel's up to the order of the additions (and FMA rounding): a
-// relative difference of ~1e-15 (the listing: float32 weights, ~1e-7). FASTMAC_DENSE_CORE=off forces the
+// relative difference of ~1e-15 (float32 cores and the listing: ~1e-7; see Precision in mac_core.hpp). FASTMAC_DENSE_CORE=off forces the
 // all-sparse path, FASTMAC_TRIANGLES=on | off the listing, FASTMAC_GEMM=avx512 |
 // avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has).
 #include <algorithm>
@@ -537,7 +537,7 @@ bool use_triangles(const Csr &V, const Core &core) {
 }  // namespace
 
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads, int64_t *core_size,
-                                  bool single) {
+                                  Precision precision) {
     const int64_t n = V.n;
     const int64_t *ptr = V.ptr.data();
     const int32_t *col = V.col.data();
@@ -549,7 +549,11 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     const Core core = find_core(V, order);
     if (core_size) *core_size = core.m;
     InterruptibleRegion ctrl_c;  // Ctrl-C: a 50,000-node graph takes seconds
-    // P in double, or in float (the sampler's graph, as the reference computes it: spec 7.2)
+    const bool listing_ok = precision == Precision::Single;  // the sampler's graph
+    const bool single = precision == Precision::Single ||
+                        (precision == Precision::Mac && core.m >= kSingleCore &&
+                         !env_is("FASTMAC_MAC_PRECISION", "double"));
+    // P in double, or in float (see Precision)
     Array<double> Pd;
     Array<float> Pf;
     int64_t ld = 0;
@@ -575,7 +579,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     // listing. MAC's graph keeps the per-edge sums below, whose order of additions the Python backend's
     // parity rests on; so do small graphs, where the gathers hit the cache and the listing's set-up costs
     // more than it saves (measured on the 5,000-correspondence outdoor pairs: 10-25 % slower there).
-    if (single && use_triangles(V, core)) {
+    if (listing_ok && use_triangles(V, core)) {
         if (order.empty()) order = degree_order(V);  // no core search ran (small or switched off)
         const Forward f = forward_graph(V, vals, order, nthreads);
         ctrl_c.throw_if_hit();
@@ -651,8 +655,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     return S;
 }
 
-std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size, bool single) {
-    return masked_square(W, W.w, nthreads, core_size, single);
+std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size, Precision precision) {
+    return masked_square(W, W.w, nthreads, core_size, precision);
 }
 
 }  // namespace fastmac
