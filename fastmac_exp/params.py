@@ -51,6 +51,12 @@ SEARCHES = ("auto", "bnb", "enumerate")
 # spec-2.5 reduction, 342 missing edges, 8e6 nodes / 9 s exactly; capped at 1e6 its pose is 0.0008 deg and
 # 8 um from the exact one). A run that spends it says so in `cap_hit` (the same on every machine).
 DEFAULT_MAX_NODES = 1_000_000
+# The branch and bound's work budget, in units of about a nanosecond of one core (counted steps of its
+# greedy cliques, set-ups, branches and bounds; 0.8-1.4 ns a unit measured): about a second whatever the
+# graph's size. The 13 real pairs at 5,000 FPFH correspondences take at most 39M units (MAC@100,
+# search=bnb); a node costs ~100 units there and up to ~10^6 on a dense 2,500-node graph, where the
+# 1,000,000-node cap alone allowed minutes.
+DEFAULT_MAX_WORK = 1_000_000_000
 # search="auto" enumerates the maximal cliques while the enumeration's work stays within this budget per
 # node that can be in a clique, else runs the branch and bound. Work is counted in units of about a
 # nanosecond of one core (measured on real pairs): 160 a search node, 1 a member pair of each clique found
@@ -80,16 +86,18 @@ class MacParams:
     # "enumerate".
     search: str = "auto"
     # Work budgets (0 = off): a capped result is the same on any machine and thread count, and says so
-    # in `cap_hit`. max_cliques bounds the enumeration, max_nodes the branch and bound.
+    # in `cap_hit`. max_cliques bounds the enumeration; max_work (units of ~1 ns of one core) and
+    # max_nodes (search nodes) bound the branch and bound, whichever is spent first.
     max_cliques: int = 0
     max_nodes: int = DEFAULT_MAX_NODES
+    max_work: int = DEFAULT_MAX_WORK
     enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # auto only, work units a node; 0 = always bnb
     time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
 
     def __post_init__(self) -> None:
         if self.search not in SEARCHES:
             raise InputError(f"mac.search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
-        for name in ("max_cliques", "max_nodes"):
+        for name in ("max_cliques", "max_nodes", "max_work"):
             if getattr(self, name) < 0:
                 raise InputError(f"mac.{name} must be >= 0 (0 = no cap), got {getattr(self, name)}")
         if self.enumerate_budget < 0:
@@ -141,6 +149,7 @@ def mac_params_for(
         "search",
         "max_cliques",
         "max_nodes",
+        "max_work",
         "enumerate_budget",
         "time_limit_s",
     }

@@ -210,8 +210,8 @@ nb::tuple maximal_cliques(int64_t n, const Indices &i, const Indices &j, int min
 }
 
 nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Weights &w, int min_size,
-                        const std::string &search, int64_t max_cliques, int64_t max_nodes, double time_limit_s,
-                        int64_t enumerate_budget, int num_threads) {
+                        const std::string &search, int64_t max_cliques, int64_t max_nodes, int64_t max_work,
+                        double time_limit_s, int64_t enumerate_budget, int num_threads) {
     const int64_t m = (int64_t)i.shape(0);
     if ((int64_t)j.shape(0) != m || (int64_t)w.shape(0) != m)
         throw std::invalid_argument("i, j and w must have the same length");
@@ -220,7 +220,7 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
     int64_t n_cliques = 0, nodes = 0;
     std::string cap_hit;
     fastmac::Search used = how;
-    int64_t work = 0;
+    int64_t work = 0, bnb_work = 0;
     {
         nb::gil_scoped_release nogil;
         fastmac::AdjGraph g = fastmac::adj_from_edges(n, i.data(), j.data(), m);
@@ -241,11 +241,13 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
         fastmac::CliqueCaps caps;
         caps.max_cliques = max_cliques;
         caps.max_nodes = max_nodes;
+        caps.max_work = max_work;
         caps.time_limit_s = time_limit_s;
         caps.enumerate_work_per_node = enumerate_budget;
         fastmac::NodeChoice choice(g, vals);
         n_cliques =
-            fastmac::clique_search(g, vals, min_size, how, caps, cap_hit, nodes, num_threads, choice, &used, &work);
+            fastmac::clique_search(g, vals, min_size, how, caps, cap_hit, nodes, num_threads, choice, &used, &work,
+                                  &bnb_work);
         sel = choice.finish();
     }
     nb::dict d;
@@ -254,14 +256,15 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
     d["search_nodes"] = nodes;
     d["search_used"] = fastmac::search_name(used);
     d["enumerate_work"] = work;
+    d["search_work"] = bnb_work;
     d["cap_hit"] = cap_hit;
     return d;
 }
 
 nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
              double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
-             const std::string &search, int64_t max_cliques, int64_t max_nodes, double time_limit_s,
-             int64_t enumerate_budget, int num_threads, bool return_selected) {
+             const std::string &search, int64_t max_cliques, int64_t max_nodes, int64_t max_work,
+             double time_limit_s, int64_t enumerate_budget, int num_threads, bool return_selected) {
     const int64_t n = check_pair(src, tgt);
     fastmac::MacParams p;
     p.graph = graph_params(kernel, alpha, tau, threshold);
@@ -272,6 +275,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     p.search = fastmac::parse_search(search);
     p.max_cliques = max_cliques;
     p.max_nodes = max_nodes;
+    p.max_work = max_work;
     p.time_limit_s = time_limit_s;
     p.enumerate_budget = enumerate_budget;
     p.return_selected = return_selected;
@@ -293,6 +297,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     d["search_nodes"] = r.search_nodes;
     d["search_used"] = fastmac::search_name(r.search_used);
     d["enumerate_work"] = r.enumerate_work;
+    d["search_work"] = r.search_work;
     d["reduced"] = r.reduced;
     d["cap_hit"] = r.cap_hit;
     nb::dict t;
@@ -420,15 +425,16 @@ NB_MODULE(_mac_core, m) {
           "('' when none).");
     m.def("mac", &mac, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a, "inlier_threshold"_a,
           "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "search"_a = "auto",
-          "max_cliques"_a = 0, "max_nodes"_a = 0, "time_limit_s"_a = 0.0,
+          "max_cliques"_a = 0, "max_nodes"_a = 0, "max_work"_a = 0, "time_limit_s"_a = 0.0,
           "enumerate_budget"_a = fastmac::kEnumerateBudget, "num_threads"_a = 0, "return_selected"_a = false,
           "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order.");
     m.def("select_cliques", &select_cliques, "n"_a, "i"_a, "j"_a, "w"_a, "min_size"_a = 3, "search"_a = "auto",
-          "max_cliques"_a = 0, "max_nodes"_a = 0, "time_limit_s"_a = 0.0,
+          "max_cliques"_a = 0, "max_nodes"_a = 0, "max_work"_a = 0, "time_limit_s"_a = 0.0,
           "enumerate_budget"_a = fastmac::kEnumerateBudget, "num_threads"_a = 0,
           "Node-guided clique selection (spec 4) on the graph with positive edge weights w: a dict with "
           "'cliques' (the selected cliques in hypothesis order), 'n_cliques' (maximal cliques enumerated, or "
-          "cliques offered by the branch and bound), 'search_nodes', 'search_used' (what 'auto' ran), "
+          "cliques offered by the branch and bound), 'search_nodes', 'search_work' (the branch and bound's "
+          "work units, what max_work caps), 'search_used' (what 'auto' ran), "
           "'enumerate_work' (auto's enumeration work, against enumerate_budget times the nodes that can be "
           "in a clique) and 'cap_hit'.");
     m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,

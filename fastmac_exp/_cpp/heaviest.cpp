@@ -83,18 +83,29 @@ constexpr int64_t kNearCliqueConflicts = 16;
 // Step 3 runs one search per node left to do where the nodes that can be in a clique are at least this
 // dense (near-cliques: 0.95-0.999 on the reduced outdoor graphs; sparse indoor graphs ~0.01).
 constexpr double kPerNodeDensity = 0.9;
+// Step 1 skips the nodes an earlier greedy clique covers on graphs at least this dense (see step 1).
+constexpr double kCoverDensity = 0.5;
+// The work counted (Searcher::work) in units of about a nanosecond of one core: a counted step took
+// 2.5-4.2 ns on the graphs measured (the greedy cliques of a dense 2,476-node graph, per-root set-ups and
+// branches there and on 50,000 real 3DMatch FPFH matches), so each counts 3 units (0.8-1.4 ns).
+constexpr int64_t kWorkScale = 3;
 // Steps 2 and 3 on a near-clique search one graph built once (Searcher::make_global) up to this many
 // nodes (its weight matrix: 8 bytes per pair, 128 MB at the cap); above it, one local graph per root.
 constexpr int64_t kGlobalMax = 4096;
 
 inline int popcount64(uint64_t x) { return __builtin_popcountll(x); }
 
+inline double ms_between(std::chrono::steady_clock::time_point a, std::chrono::steady_clock::time_point b) {
+    return std::chrono::duration<double, std::milli>(b - a).count();
+}
+
 struct Control {
     int64_t max_nodes = 0;  // for steps 2 and 3 together (they run serially on one searcher)
+    int64_t max_work = 0;   // likewise, in work units (Searcher::work)
     bool timed = false;
     std::chrono::steady_clock::time_point deadline;
     std::atomic<bool> stop{false};
-    std::atomic<int> why{0};  // 1 = max_nodes, 2 = time limit, 3 = interrupted
+    std::atomic<int> why{0};  // 1 = max_nodes, 2 = time limit, 3 = interrupted, 4 = max_work
     void halt(int reason) {
         int expected = 0;
         why.compare_exchange_strong(expected, reason);
@@ -109,7 +120,12 @@ class Searcher {
         : g_(g), vals_(vals), min_size_(min_size), choice_(choice), ctl_(ctl), tid_(tid), loc_(g.n, -1) {}
 
     int64_t nodes = 0, offered = 0;
+    // Work done: the inner-loop steps of the greedy cliques, set-ups, branches and bounds (each
+    // kWorkScale units of ~1 ns; what max_work caps).
+    int64_t work = 0;
+    int64_t work_units() const { return work * kWorkScale; }
     bool capped = false;  // some search ran out of its node budget
+    bool work_capped = false;  // ... of its work budget
     std::vector<std::pair<int32_t, double>> raised;  // (node, weight) of every clique offered
     Interrupt *interrupt = nullptr;                  // thread 0 only
 
@@ -161,6 +177,7 @@ class Searcher {
                 if (ca_[q] > ca_[k]) k = q;
             const int32_t x = C_[k];
             members_.push_back(x);
+            work += 2 * (int64_t)C_.size() + (g_.ptr[x + 1] - g_.ptr[x]);
             // C = C n N(x), attachments += G(x, .): a merge of two sorted lists
             size_t out = 0, q = 0;
             int64_t p = g_.ptr[x];
@@ -208,9 +225,11 @@ class Searcher {
                     for (uint64_t bits = U_[w]; bits; bits &= bits - 1) {
                         const int x = w * 64 + __builtin_ctzll(bits);
                         if (k < 0 || ca_[x] > ca_[k] || (ca_[x] == ca_[k] && L_[x] < L_[k])) k = x;
+                        work += 2;  // this candidate's test here and its update below
                     }
                 if (k < 0) break;
                 members_.push_back(L_[k]);
+                work += 2 * W_;
                 const uint64_t *rk = adj_.data() + (size_t)k * W_;
                 const double *gk = gm_.data() + (size_t)k * np_;
                 for (int w = 0; w < W_; ++w) {
@@ -321,8 +340,10 @@ class Searcher {
         // written (through a register for one-word rows).
         adj_.assign((size_t)nl_ * W_, 0);
         gm_.assign((size_t)np_ * np_, 0.0);
+        work += (int64_t)nl_ * W_ + (int64_t)np_ * np_ / 4;
         for (int k = 0; k < np_; ++k) {
             const int32_t u = L_[k];
+            work += g_.ptr[u + 1] - g_.ptr[u];
             const int64_t p0 = g_.ptr[u], c = local_neighbours(g_, loc_, u, hit_);
             const int32_t *hit = hit_.data();
             uint64_t *row = adj_.data() + (size_t)k * W_;
@@ -371,6 +392,7 @@ class Searcher {
     bool setup_global(int32_t root, const std::vector<int32_t> &cand, const std::vector<int32_t> &excl) {
         const int r = loc_[root];
         if (r < 0) return false;
+        work += 2 * W_ + (int64_t)(cand.size() + excl.size()) + np_;
         if ((int)levels_.size() < np_ + 2) levels_.resize(np_ + 2);
         Level &top = levels_[0];
         top.P.assign(W_, 0);
@@ -395,10 +417,25 @@ class Searcher {
         return true;
     }
 
+    int popcount_words(const uint64_t *x) const {
+        int c = 0;
+        for (int w = 0; w < W_; ++w) c += popcount64(x[w]);
+        return c;
+    }
+
     bool should_stop() {
         if (aborted_ || ctl_.stop.load(std::memory_order_relaxed)) return true;
+        // The budget of the whole selection is spent (steps 2 and 3 are serial, on this searcher): stop
+        // every search, not only this one (the roots left would each pay their set-up for nothing).
         if (ctl_.max_nodes > 0 && nodes > ctl_.max_nodes) {
-            aborted_ = true;  // the budget of the whole selection is spent (steps 2 and 3 are serial)
+            aborted_ = true;
+            ctl_.halt(1);
+            return true;
+        }
+        if (ctl_.max_work > 0 && work_units() > ctl_.max_work) {
+            aborted_ = true;
+            work_capped = true;
+            ctl_.halt(4);
             return true;
         }
         if ((nodes & 255) == 0) {
@@ -450,7 +487,7 @@ class Searcher {
     // one target: ub must reach it. With a target per node: ub must reach the target of a member of
     // R, or, for some candidate z, the bound on the cliques through z must reach z's target (the same
     // sum with z in its class and, in every other class, the best member adjacent to z).
-    bool wanted(const Level &lv, double wR, double ub) const {
+    bool wanted(const Level &lv, double wR, double ub) {
         if (!targets_) return ub >= *target_ * (1.0 - kSlack);
         const std::vector<double> &t = *targets_;
         if (ub >= need_r() * (1.0 - kSlack)) return true;
@@ -460,6 +497,7 @@ class Searcher {
             const double tz = t[L_[z]];
             if (!(ub >= tz * (1.0 - kSlack))) continue;  // infinite or out of reach anyway
             const uint64_t *rz = adj_.data() + (size_t)z * W_;
+            work += cnt;
             double uz = wR + lv.val[i], best = 0.0;
             int c = lv.col[0];
             for (int j = 0; j < cnt; ++j) {
@@ -495,6 +533,7 @@ class Searcher {
                 if (targets_ && !std::isinf((*targets_)[L_[y]])) continue;  // y still needs its best clique
                 const uint64_t *ry = adj_.data() + (size_t)y * W_;
                 const double *gy = gm_.data() + (size_t)y * np_;
+                work += W_;
                 bool gone = false;
                 for (int k = 0; k < W_ && !gone; ++k)
                     for (uint64_t xb = P[k] & ~ry[k]; xb && !gone; xb &= xb - 1) {
@@ -505,6 +544,7 @@ class Searcher {
                         for (int q = 0; q < W_ && subset; ++q) subset = (P[q] & ry[q] & ~rx[q]) == 0;
                         if (!subset) continue;
                         const double *gx = gm_.data() + (size_t)x * np_;
+                        work += 4 * W_;
                         double gain = lv.a[x] - lv.a[y], scale = lv.a[x];
                         for (int q = 0; q < W_; ++q)
                             for (uint64_t zb = P[q] & ry[q]; zb; zb &= zb - 1) {
@@ -540,6 +580,7 @@ class Searcher {
                 class_start = i;
             }
             const double *gu = gm_.data() + (size_t)u * np_;
+            work += class_start;
             double beta = 0.0, best = 0.0;
             int c = 1;
             for (int j = 0; j < class_start; ++j) {
@@ -657,6 +698,7 @@ class Searcher {
 
         int left = 0;
         for (int w = 0; w < W_; ++w) left += popcount64(P[w]);
+        work += 2 * (int64_t)left * W_ + W_;  // the universal check and the colouring
         // A candidate adjacent to every other candidate is in every maximal clique of this branch:
         // move it into R (near-cliques have many).
         for (int w = 0; w < W_; ++w)
@@ -677,6 +719,7 @@ class Searcher {
                         lv.a[x] += gu[x];
                     }
                 R_.push_back(u);
+                work += W_ + left;
             }
         if (left == 0) {
             for (int w = 0; w < W_; ++w)
@@ -715,6 +758,7 @@ class Searcher {
         // bound much tighter (the smaller bound is kept); (2) dominated candidates leave P.
         if ((matching_ || dominance_) && (int)lv.order.size() > 2) {
             const int cnt0 = (int)lv.order.size();
+            work += (int64_t)cnt0 * W_;
             int64_t conflicts = 0;
             for (int w = 0; w < W_; ++w)
                 for (uint64_t bits = P[w]; bits; bits &= bits - 1) {
@@ -762,6 +806,7 @@ class Searcher {
         // Pivot (Tomita): the vertex of P u X with the most neighbours in P. A maximal clique of this
         // branch contains a non-neighbour of the pivot, so only those are branched on.
         int pivot = -1, most = -1;
+        work += (int64_t)(cnt + popcount_words(X)) * W_;
         for (int w = 0; w < W_ && most < cnt; ++w)
             for (uint64_t bits = P[w] | X[w]; bits; bits &= bits - 1) {
                 const int u = w * 64 + __builtin_ctzll(bits);
@@ -793,6 +838,7 @@ class Searcher {
                 NX[w] = X[w] & ru[w];
             }
             const double *gu = gm_.data() + (size_t)u * np_;
+            work += 2 * W_ + cnt;
             for (int w = 0; w < W_; ++w)
                 for (uint64_t bits = NP[w]; bits; bits &= bits - 1) {
                     const int x = w * 64 + __builtin_ctzll(bits);
@@ -833,15 +879,19 @@ void run_parallel(int64_t count, int64_t chunk, int nthreads, std::vector<std::u
 }  // namespace
 
 int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int min_size, const CliqueCaps &caps,
-                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice) {
+                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice,
+                         int64_t *work) {
+    const auto t_setup = std::chrono::steady_clock::now();
     cap_hit.clear();
     search_nodes = 0;
+    if (work) *work = 0;
     if (min_size < 1) min_size = 1;
     nthreads = resolve_threads(nthreads, g.n);
     const int64_t n = g.n;
 
     Control ctl;
     ctl.max_nodes = caps.max_nodes;
+    ctl.max_work = caps.max_work;
     if (caps.time_limit_s > 0) {
         ctl.timed = true;
         ctl.deadline = std::chrono::steady_clock::now() +
@@ -873,6 +923,10 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         }
     const bool near_clique =
         (double)active_edges >= kPerNodeDensity * (double)active * (double)(active - 1) && active > 1;
+    // Step 1's greedy cliques cost ~degree x clique size each, cubic in the graph's size where it is
+    // dense: above this density each node an earlier greedy clique covers takes its bound from that one.
+    const bool dense =
+        (double)active_edges >= kCoverDensity * (double)active * (double)(active - 1) && active > 1;
     const bool per_node =
         env_is("FASTMAC_STEP3", "pernode") || (near_clique && !env_is("FASTMAC_STEP3", "shared"));
 
@@ -889,15 +943,21 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         searchers[0]->make_global(nodes);
     }
 
+    const auto t_start = std::chrono::steady_clock::now();
     // 1. a greedy clique through every node; cliques from neighbouring seeds often coincide, so each
     // distinct one is weighed and offered once (in node order: the count does not depend on threads).
     // On a near-clique the greedy cliques are huge and nearly all the same: serially, a node that an
     // earlier one covers takes its lower bound from it.
-    if (near_clique) {
+    if (dense) {
         std::vector<char> covered(n, 0);
         Searcher &s0 = *searchers[0];
         for (int64_t v = 0; v < n && !ctl.stop.load(); ++v) {
             if (degree(v) + 1 < min_size || covered[v]) continue;
+            if (ctl.max_work > 0 && s0.work_units() > ctl.max_work) {  // serial here, so counted as steps 2-3 are
+                s0.capped = s0.work_capped = true;
+                ctl.halt(4);
+                break;
+            }
             const size_t before = s0.greedy_.size();
             s0.greedy((int32_t)v);
             if (s0.greedy_.size() > before)
@@ -908,6 +968,9 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         run_parallel(n, 64, nthreads, searchers, ctl, interrupt, [&](int64_t v, Searcher &s) {
             if (degree(v) + 1 >= min_size) s.greedy((int32_t)v);
         });
+        // how it split between the threads depends on timing: the work budget counts steps 2 and 3 only
+        // here (each greedy clique of a sparse graph is cheap)
+        for (auto &s : searchers) s->work = 0;
     }
     {
         std::vector<const std::vector<int32_t> *> all;
@@ -922,6 +985,7 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     }
     collect();
 
+    const auto t_step1 = std::chrono::steady_clock::now();
     // 2. the heaviest clique overall, from the dense core outwards (serial: one shared target)
     double best = 0.0;
     for (int64_t v = 0; v < n; ++v) best = std::max(best, lb[v]);
@@ -946,6 +1010,7 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
     collect();
 
     const bool debug = std::getenv("FASTMAC_DEBUG_SEARCH") != nullptr;
+    const auto t_step2 = std::chrono::steady_clock::now();
     int64_t step2_nodes = 0;
     for (auto &s : searchers) step2_nodes += s->nodes;
     // 3. the nodes whose lower bound is below the heaviest clique: one search over the maximal cliques
@@ -1017,23 +1082,28 @@ int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int
         std::fprintf(stderr, "repeat of step 3 with exact targets: %lld nodes\n", (long long)(after - before));
     }
     if (debug) {
-        int64_t all = 0;
-        for (auto &s : searchers) all += s->nodes;
+        int64_t all = 0, all_work = 0;
+        for (auto &s : searchers) all += s->nodes, all_work += s->work_units();
         std::fprintf(stderr,
-                     "heaviest: best %.6g, step 2 nodes %lld, step 3: %lld nodes to do, %lld nodes; %s graph\n", best,
-                     (long long)step2_nodes, (long long)n_todo, (long long)(all - step2_nodes),
-                     searchers[0]->is_global() ? "one global" : "per-root");
+                     "heaviest: best %.6g, step 2 nodes %lld, step 3: %lld nodes to do, %lld nodes; %s graph; "
+                     "work %lld; ms: set-up %.1f, step 1 %.1f, step 2 %.1f, step 3 %.1f\n", best, (long long)step2_nodes, (long long)n_todo, (long long)(all - step2_nodes),
+                     searchers[0]->is_global() ? "one global" : "per-root", (long long)all_work,
+                     ms_between(t_setup, t_start), ms_between(t_start, t_step1), ms_between(t_step1, t_step2),
+                     ms_between(t_step2, std::chrono::steady_clock::now()));
     }
     int64_t offered = 0;
-    bool capped = false;
+    bool capped = false, work_capped = false;
     for (auto &s : searchers) {
         offered += s->offered;
         search_nodes += s->nodes;
+        if (work) *work += s->work_units();
         capped = capped || s->capped;
+        work_capped = work_capped || s->work_capped;
     }
-    if (capped) ctl.halt(1);
+    if (capped) ctl.halt(work_capped ? 4 : 1);
     switch (ctl.why.load()) {
         case 1: cap_hit = "max_nodes=" + std::to_string(caps.max_nodes); break;
+        case 4: cap_hit = "max_work=" + std::to_string(caps.max_work); break;
         case 2: {
             char buf[64];
             std::snprintf(buf, sizeof buf, "time_limit=%gs", caps.time_limit_s);

@@ -145,9 +145,10 @@ const char *search_name(Search s) {
 
 int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                       const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
-                      NodeChoice &choice, Search *used, int64_t *work) {
+                      NodeChoice &choice, Search *used, int64_t *work, int64_t *bnb_work) {
     search_nodes = 0;
     if (work) *work = 0;
+    if (bnb_work) *bnb_work = 0;
     SelectSink sink(choice);
     if (search == Search::Enumerate) {
         if (used) *used = Search::Enumerate;
@@ -174,7 +175,7 @@ int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int mi
         if (rest.time_limit_s > 0) rest.time_limit_s = std::max(1e-6, rest.time_limit_s - ms_since(t0) / 1e3);
     }
     if (used) *used = Search::Heaviest;
-    return heaviest_cliques(g, vals, min_size, rest, cap_hit, search_nodes, nthreads, choice);
+    return heaviest_cliques(g, vals, min_size, rest, cap_hit, search_nodes, nthreads, choice, bnb_work);
 }
 
 CliqueList node_guided_selection(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
@@ -263,11 +264,13 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     CliqueCaps caps;
     caps.max_cliques = p.max_cliques;
     caps.max_nodes = p.max_nodes;
+    caps.max_work = p.max_work;
     caps.time_limit_s = p.time_limit_s;
     caps.enumerate_work_per_node = p.enumerate_budget;
     NodeChoice choice(cg, cgw);
     res.n_cliques = clique_search(cg, cgw, p.min_clique_size, p.search, caps, res.cap_hit, res.search_nodes,
-                                  nthreads, choice, &res.search_used, &res.enumerate_work);
+                                  nthreads, choice, &res.search_used, &res.enumerate_work,
+                                  &res.search_work);
     res.t_cliques = ms_since(t0);
     if (res.n_cliques == 0)
         throw RegistrationFailed("no maximal clique of size >= " + std::to_string(p.min_clique_size));

@@ -167,6 +167,7 @@ struct CliqueList {
 struct CliqueCaps {
     int64_t max_cliques = 0;    // enumeration: stop after this many maximal cliques; 0 = no cap
     int64_t max_nodes = 0;      // branch and bound: search-tree nodes; 0 = no cap
+    int64_t max_work = 0;       // branch and bound: work units (~1 ns of one core each); 0 = no cap
     double time_limit_s = 0.0;  // 0 = no limit
     // search "auto" (clique_search): the enumeration's work budget per node that can be in a clique
     // (degree >= min_size - 1); 0 = the branch and bound at once
@@ -217,8 +218,10 @@ class NodeChoice;  // selection.hpp
 // clique that may be some node's heaviest clique of size >= min_size, by branch and bound; without a
 // cap hit, choice.finish() then equals the selection over all maximal cliques. Returns the number of
 // cliques offered; search_nodes receives the search-tree nodes visited. Throws Interrupted on Ctrl-C.
+// work (optional): the work units of steps 2 and 3 (what CliqueCaps::max_work caps).
 int64_t heaviest_cliques(const AdjGraph &g, const std::vector<double> &vals, int min_size, const CliqueCaps &caps,
-                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice);
+                         std::string &cap_hit, int64_t &search_nodes, int nthreads, NodeChoice &choice,
+                         int64_t *work = nullptr);
 
 // ---------------------------------------------------------------------------------------------
 // Poses
@@ -272,10 +275,11 @@ const char *search_name(Search s);
 
 // The clique search of node-guided selection, into choice (started here). Returns n_cliques (see
 // MacResult); *used: the search that produced the result (Auto resolves to one of the other two);
-// *work: Auto's enumeration work (GiveUp::work), partial when it gave up.
+// *work: Auto's enumeration work (GiveUp::work), partial when it gave up; *bnb_work: the branch and
+// bound's work units.
 int64_t clique_search(const AdjGraph &g, const std::vector<double> &vals, int min_size, Search search,
                       const CliqueCaps &caps, std::string &cap_hit, int64_t &search_nodes, int nthreads,
-                      NodeChoice &choice, Search *used, int64_t *work = nullptr);
+                      NodeChoice &choice, Search *used, int64_t *work = nullptr, int64_t *bnb_work = nullptr);
 
 struct MacParams {
     GraphParams graph;
@@ -285,7 +289,8 @@ struct MacParams {
     bool reduction = true;
     Search search = Search::Auto;
     int64_t max_cliques = 0;  // enumeration budget
-    int64_t max_nodes = 0;    // branch-and-bound budget
+    int64_t max_nodes = 0;    // branch-and-bound budget, in search nodes
+    int64_t max_work = 0;     // branch-and-bound budget, in work units
     int64_t enumerate_budget = kEnumerateBudget;  // Auto: CliqueCaps::enumerate_work_per_node
     double time_limit_s = 0.0;
     bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
@@ -300,6 +305,7 @@ struct MacResult {
     bool reduced = false;
     Search search_used = Search::Heaviest;
     int64_t enumerate_work = 0;  // Auto: the enumeration's work (all of it unless it gave up)
+    int64_t search_work = 0;     // the branch and bound's work units (0 when it did not run)
     std::string cap_hit;
     CliqueList selected;  // only with MacParams::return_selected
     // Wall-clock milliseconds. graph: W and G. cliques: clustering/reduction, the clique graph and the

@@ -54,6 +54,7 @@ class CppBackend:
             search=str(params.search),
             max_cliques=int(params.max_cliques),
             max_nodes=int(params.max_nodes),
+            max_work=int(params.max_work),
             time_limit_s=float(params.time_limit_s),
             enumerate_budget=int(params.enumerate_budget),
             num_threads=self.num_threads,
