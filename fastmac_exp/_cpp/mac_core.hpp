@@ -83,10 +83,13 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
 //   Single: float32 in the core, and the triangle listing on large graphs (the sampler's graph; spec 7.2
 //           computes it in float32).
 //   Mac:    MAC's graphs (G and the clustering coefficients' sums): float64, except float32 in cores of
-//           at least kSingleCore nodes, where the product's m^3/2 multiply-adds are MAC's whole cost (the
-//           reference computes G in float32 too, spec 2.3). FASTMAC_MAC_PRECISION=double keeps float64.
+//           at least kSingleCore nodes, where the product's m^3/2 multiply-adds are most of MAC's cost (the
+//           1,000 FastMAC@20 keeps of a dense KITTI pair: a core of ~900; the near-cliques it keeps at
+//           50,000: ~2,500), and the reference computes G in float32 too (spec 2.3). Small graphs (the
+//           C++/Python parity tests, up to 300 correspondences) stay float64. FASTMAC_MAC_PRECISION=double
+//           keeps float64 everywhere.
 enum class Precision { Double, Single, Mac };
-constexpr int64_t kSingleCore = 1024;
+constexpr int64_t kSingleCore = 512;
 
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
 std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr,
