@@ -10,6 +10,7 @@
 #include "interrupt.hpp"
 #include "mac_core.hpp"
 #include "selection.hpp"
+#include "turboreg.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;
@@ -310,6 +311,83 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     return d;
 }
 
+nb::dict turboreg(const Points &src, const Points &tgt, int64_t max_n, double tau, int64_t num_pivot,
+                  double radius_nms, double tau_inlier, const std::string &metric, bool hard, int refine_iters,
+                  int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    fastmac::TurboParams p;
+    p.max_n = max_n;
+    p.tau = tau;
+    p.num_pivot = num_pivot;
+    p.radius_nms = radius_nms;
+    p.tau_inlier = tau_inlier;
+    p.metric = fastmac::parse_metric(metric);
+    p.hard = hard;
+    p.refine_iters = refine_iters;
+    fastmac::TurboResult r;
+    {
+        nb::gil_scoped_release nogil;
+        r = fastmac::turboreg(src.data(), tgt.data(), n, p, num_threads);
+    }
+    nb::dict d;
+    d["pose"] = pose_to_numpy(r.pose);
+    d["pose_unrefined"] = pose_to_numpy(r.pose_unrefined);
+    d["clique"] = to_numpy(std::vector<int64_t>(r.clique, r.clique + 3));
+    d["score"] = r.score;
+    d["n_used"] = r.n_used;
+    d["n_edges"] = r.n_edges;
+    d["n_sog_edges"] = r.n_sog_edges;
+    d["n_pivots"] = r.n_pivots;
+    d["n_hypotheses"] = r.n_hypotheses;
+    d["n_unique"] = r.n_unique;
+    d["refine_iters_run"] = r.refine_iters_run;
+    nb::dict t;
+    t["graph"] = r.t_graph;
+    t["pivots"] = r.t_pivots;
+    t["hypotheses"] = r.t_hypotheses;
+    t["pose"] = r.t_pose;
+    d["timings"] = t;
+    return d;
+}
+
+nb::dict length_graph_edges(const Points &src, const Points &tgt, double tau, double cut, bool hard,
+                            int num_threads) {
+    const int64_t n = check_pair(src, tgt);
+    std::vector<float> s32(3 * n), t32(3 * n);
+    for (int64_t k = 0; k < 3 * n; ++k) {
+        s32[k] = (float)src.data()[k];
+        t32[k] = (float)tgt.data()[k];
+    }
+    std::vector<int64_t> ei, ej;
+    std::vector<double> ew, es;
+    {
+        nb::gil_scoped_release nogil;
+        const fastmac::Csr W = fastmac::length_graph(s32.data(), t32.data(), n, (float)tau, (float)cut, hard,
+                                                     num_threads);
+        const std::vector<double> S = fastmac::masked_square(W, W.w, num_threads, nullptr,
+                                                             fastmac::Precision::Single);
+        for (int64_t i = 0; i < n; ++i)
+            for (int64_t q = W.upper[i]; q < W.ptr[i + 1]; ++q) {
+                ei.push_back(i);
+                ej.push_back(W.col[q]);
+                ew.push_back(W.w[q]);
+                es.push_back(S[q]);
+            }
+    }
+    nb::dict d;
+    d["i"] = to_numpy(std::move(ei));
+    d["j"] = to_numpy(std::move(ej));
+    d["w"] = to_numpy(std::move(ew));
+    d["sc2"] = to_numpy(std::move(es));
+    return d;
+}
+
+nb::object torch_topk_sparse(int64_t dim, int64_t k, const Indices &pos, const Weights &val) {
+    std::vector<int64_t> p(pos.data(), pos.data() + pos.shape(0));
+    std::vector<double> v(val.data(), val.data() + val.shape(0));
+    return to_numpy(fastmac::torch_topk_sparse(dim, k, p, v));
+}
+
 nb::object nearest_rows(const Points &a, const Points &b, int num_threads) {
     if (a.shape(1) != b.shape(1))
         throw std::invalid_argument("a and b must have the same number of columns, got " +
@@ -437,6 +515,13 @@ NB_MODULE(_mac_core, m) {
           "work units, what max_work caps), 'search_used' (what 'auto' ran), "
           "'enumerate_work' (auto's enumeration work, against enumerate_budget times the nodes that can be "
           "in a clique) and 'cap_hit'.");
+    m.def("turboreg", &turboreg, "src"_a, "tgt"_a, "max_n"_a = 7000, "tau"_a = 0.012, "num_pivot"_a = 2000,
+          "radius_nms"_a = 0.15, "tau_inlier"_a = 0.1, "metric"_a = "IN", "hard"_a = true, "refine_iters"_a = 20,
+          "num_threads"_a = 0, "TurboReg (ICCV 2025) on the CPU: pose, winning 3-clique, counts, stage timings (ms)");
+    m.def("length_graph_edges", &length_graph_edges, "src"_a, "tgt"_a, "tau"_a, "cut"_a, "hard"_a = true,
+          "num_threads"_a = 0, "TurboReg's compatibility graph C and SC^2 on it: upper edges i < j");
+    m.def("torch_topk_sparse", &torch_topk_sparse, "dim"_a, "k"_a, "pos"_a, "val"_a,
+          "torch.topk's positions (ties included) of a sparse non-negative sequence");
     m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,
           "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),

@@ -280,17 +280,10 @@ TestFn pick_test() {
     return test_generic;
 }
 
-}  // namespace
 
-Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
-    check_params(gp);
-    nthreads = resolve_threads(nthreads, n);
-    Csr W;
-    W.n = n;
-    W.ptr.assign(n + 1, 0);
-    W.upper.assign(n, 0);
-    if (n == 0) return W;
-
+// Centred float32 copies of the coordinates for the screen, which keeps every pair whose inconsistency
+// can be at most max_dist (m: the largest inconsistency of an edge, before the rounding margin).
+ScreenData make_screen(const double *src, const double *tgt, int64_t n, double max_dist) {
     // Centred float32 copies for the screen.
     double cs[3] = {0, 0, 0}, ct[3] = {0, 0, 0};
     for (int64_t i = 0; i < n; ++i)
@@ -317,18 +310,23 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
     }
     // Float rounding of the coordinates moves each distance by well under 2e-6 * rmax; 1e-5 * rmax is a
     // safe margin.
-    const double m = max_distance(gp) * (1.0 + 1e-7) + 1e-12;
+    const double m = max_dist * (1.0 + 1e-7) + 1e-12;
     const double lim = (m + 1e-5 * rmax) * (1.0 + 1e-6);
     S.k1 = (float)(2.02 * lim * lim * (1.0 + 1e-5));
-    const ScreenFn screen = pick_screen();
-    const TestFn test = pick_test();
-    ExactData E;
-    for (auto *v : {&E.sx, &E.sy, &E.sz, &E.tx, &E.ty, &E.tz}) v->resize(n);
-    for (int64_t i = 0; i < n; ++i) {
-        E.sx[i] = src[3 * i], E.sy[i] = src[3 * i + 1], E.sz[i] = src[3 * i + 2];
-        E.tx[i] = tgt[3 * i], E.ty[i] = tgt[3 * i + 1], E.tz[i] = tgt[3 * i + 2];
-    }
+    return S;
+}
 
+// The symmetric CSR graph of the pairs that pass the screen S and then test(i, cand, n_cand, col, w) (the
+// exact test of row i's candidates j > i, ascending: writes the kept ones and their weights to col / w,
+// with room for n_cand + 8 entries, and returns how many).
+template <class Test>
+Csr assemble_graph(int64_t n, const ScreenData &S, int nthreads, Test &&test) {
+    Csr W;
+    W.n = n;
+    W.ptr.assign(n + 1, 0);
+    W.upper.assign(n, 0);
+    if (n == 0) return W;
+    const ScreenFn screen = pick_screen();
     // The upper part of each row (neighbours j > i), found in parallel; each thread appends its rows to its
     // own buffers (no allocation per row).
     struct Part {
@@ -354,7 +352,7 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
                 const size_t n_cand = screen(S, i, i + 1, n, buf.data());
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.size;
-                row_len[i] = (int64_t)test(E, gp, i, buf.data(), n_cand, part.col.data() + part.size,
+                row_len[i] = (int64_t)test(i, buf.data(), n_cand, part.col.data() + part.size,
                                            part.w.data() + part.size);
                 part.size += (size_t)row_len[i];
             }
@@ -402,6 +400,99 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         }
     });
     return W;
+}
+
+
+}  // namespace
+
+Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
+    check_params(gp);
+    nthreads = resolve_threads(nthreads, n);
+    if (n == 0) return assemble_graph(0, ScreenData{}, nthreads, [](int64_t, const int32_t *, size_t, int32_t *,
+                                                                   double *) { return (size_t)0; });
+    const ScreenData S = make_screen(src, tgt, n, max_distance(gp));
+    const TestFn test = pick_test();
+    ExactData E;
+    for (auto *v : {&E.sx, &E.sy, &E.sz, &E.tx, &E.ty, &E.tz}) v->resize(n);
+    for (int64_t i = 0; i < n; ++i) {
+        E.sx[i] = src[3 * i], E.sy[i] = src[3 * i + 1], E.sz[i] = src[3 * i + 2];
+        E.tx[i] = tgt[3 * i], E.ty[i] = tgt[3 * i + 1], E.tz[i] = tgt[3 * i + 2];
+    }
+    return assemble_graph(n, S, nthreads, [&](int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
+                                              double *w) { return test(E, gp, i, cand, n_cand, col, w); });
+}
+
+namespace {
+
+// TurboReg's pair test in float32, as its LibTorch code evaluates it: a = |p_i - p_j| as
+// sqrt(fma(dz, dz, fma(dy, dy, dx * dx))) (torch::norm's vectorised kernel; checked bit for bit against
+// torch 2.13 on the CPU), d = |a - b|; an edge iff d < tau and not a + b <= cut.
+struct LengthTest {
+    const float *src, *tgt;
+    float tau, cut;
+    bool hard;
+};
+
+__attribute__((always_inline)) inline size_t length_test_body(const LengthTest &L, int64_t i, const int32_t *cand,
+                                                              size_t n_cand, int32_t *col, double *w) {
+    const float *p = L.src + 3 * i, *q = L.tgt + 3 * i;
+    size_t cnt = 0;
+    for (size_t c = 0; c < n_cand; ++c) {
+        const int32_t j = cand[c];
+        const float *pj = L.src + 3 * (int64_t)j, *qj = L.tgt + 3 * (int64_t)j;
+        const float ax = p[0] - pj[0], ay = p[1] - pj[1], az = p[2] - pj[2];
+        const float bx = q[0] - qj[0], by = q[1] - qj[1], bz = q[2] - qj[2];
+        const float a = std::sqrt(__builtin_fmaf(az, az, __builtin_fmaf(ay, ay, ax * ax)));
+        const float b = std::sqrt(__builtin_fmaf(bz, bz, __builtin_fmaf(by, by, bx * bx)));
+        const float d = std::fabs(a - b);
+        if (d < L.tau && !(a + b <= L.cut)) {
+            col[cnt] = j;
+            if (L.hard) {
+                w[cnt++] = 1.0;
+            } else {
+                const float r = d / L.tau;
+                w[cnt++] = (double)std::max(0.0f, 1.0f - r * r);
+            }
+        }
+    }
+    return cnt;
+}
+
+size_t length_test_generic(const LengthTest &L, int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
+                           double *w) {
+    return length_test_body(L, i, cand, n_cand, col, w);
+}
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+__attribute__((target("fma"))) size_t length_test_fma(const LengthTest &L, int64_t i, const int32_t *cand,
+                                                      size_t n_cand, int32_t *col, double *w) {
+    return length_test_body(L, i, cand, n_cand, col, w);
+}
+#endif
+
+}  // namespace
+
+Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads) {
+    if (!(tau > 0.0f)) throw std::invalid_argument("tau must be positive");
+    nthreads = resolve_threads(nthreads, n);
+    if (n == 0) return assemble_graph(0, ScreenData{}, nthreads, [](int64_t, const int32_t *, size_t, int32_t *,
+                                                                   double *) { return (size_t)0; });
+    std::vector<double> s64(3 * n), t64(3 * n);
+    double raw = 0.0;
+    for (int64_t k = 0; k < 3 * n; ++k) {
+        s64[k] = src[k];
+        t64[k] = tgt[k];
+        raw = std::max({raw, std::fabs(s64[k]), std::fabs(t64[k])});
+    }
+    // The float32 test's own rounding (raw coordinates, not centred) is well under 1e-5 of their size.
+    const ScreenData S = make_screen(s64.data(), t64.data(), n, (double)tau + 1e-5 * raw);
+    const LengthTest L{src, tgt, tau, cut, hard};
+    auto test = length_test_generic;
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    if (__builtin_cpu_supports("fma")) test = length_test_fma;
+#endif
+    return assemble_graph(n, S, nthreads, [&](int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
+                                              double *w) { return test(L, i, cand, n_cand, col, w); });
 }
 
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b) {

@@ -77,6 +77,12 @@ struct Csr {
 // The first-order graph W (spec 2.1-2.2). src, tgt: row-major (n, 3).
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads);
 
+// TurboReg's compatibility graph (turboreg.cpp), from float32 coordinates in float32 as its LibTorch code
+// computes it: an edge iff |a - b| < tau and a + b > cut (a = |p_i - p_j|, b = |q_i - q_j|; cut is
+// upstream's radiu_nms length-consistency cut), of weight 1 (hard, upstream's default) or
+// relu(1 - (|a - b| / tau)^2) (soft).
+Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads);
+
 // The arithmetic of the dense core's matrix product (masked_square.cpp; the sums outside the core are
 // always float64).
 //   Double: float64 everywhere (tests, and the reference for the others).
@@ -240,6 +246,15 @@ Pose identity_pose();
 // UNWEIGHTED means, H = sum w (p - pbar)(q - qbar)^T = U S V^T, R = V diag(1, 1, +-1) U^T, t = qbar - R pbar.
 Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m, const double *weights);
 
+// Kabsch as TurboReg (and SC2-PCR / PointDSC) write it: weighted centroids sum w p / (sum w + eps) (w = 1
+// when weights is null), H = sum w (p - pbar)(q - qbar)^T, then R and t as kabsch.
+Pose kabsch_weighted(const double *src, const double *tgt, const int32_t *idx, int64_t m, const double *weights,
+                     double eps);
+
+// What a hypothesis scores over the correspondences with residual e < tau: their number (TurboReg's
+// "IN"), sum (tau - e) / tau (MAC's score, spec 5.2; TurboReg's "MAE") or sum ((tau - e) / tau)^2 ("MSE").
+enum class Metric { Inliers, Mae, Mse };
+
 // MAE score (spec 5.2) over all n correspondences; e (optional, size n) receives the residuals.
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e);
 
@@ -249,7 +264,7 @@ double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n,
 class Scorer {
    public:
     Scorer(const double *src, const double *tgt, int64_t n, double tau);
-    double score(const Pose &T, std::vector<int32_t> &scratch) const;
+    double score(const Pose &T, std::vector<int32_t> &scratch, Metric metric = Metric::Mae) const;
 
    private:
     const double *src_, *tgt_;

@@ -139,6 +139,39 @@ Pose kabsch(const double *src, const double *tgt, const int32_t *idx, int64_t m,
     return T;
 }
 
+Pose kabsch_weighted(const double *src, const double *tgt, const int32_t *idx, int64_t m, const double *weights,
+                     double eps) {
+    Pose T = identity_pose();
+    if (m <= 0) return T;
+    double pb[3] = {0, 0, 0}, qb[3] = {0, 0, 0}, ws = 0.0;
+    for (int64_t k = 0; k < m; ++k) {
+        const int64_t i = idx ? idx[k] : k;
+        const double wk = weights ? weights[k] : 1.0;
+        ws += wk;
+        for (int r = 0; r < 3; ++r) {
+            pb[r] += wk * src[3 * i + r];
+            qb[r] += wk * tgt[3 * i + r];
+        }
+    }
+    for (int r = 0; r < 3; ++r) {
+        pb[r] /= ws + eps;
+        qb[r] /= ws + eps;
+    }
+    double H[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    for (int64_t k = 0; k < m; ++k) {
+        const int64_t i = idx ? idx[k] : k;
+        const double wk = weights ? weights[k] : 1.0;
+        const double dp[3] = {src[3 * i] - pb[0], src[3 * i + 1] - pb[1], src[3 * i + 2] - pb[2]};
+        const double dq[3] = {wk * (tgt[3 * i] - qb[0]), wk * (tgt[3 * i + 1] - qb[1]), wk * (tgt[3 * i + 2] - qb[2])};
+        for (int r = 0; r < 3; ++r)
+            for (int c = 0; c < 3; ++c) H[3 * r + c] += dp[r] * dq[c];
+    }
+    rotation_from_h(H, T.R);
+    for (int r = 0; r < 3; ++r)
+        T.t[r] = qb[r] - (T.R[3 * r] * pb[0] + T.R[3 * r + 1] * pb[1] + T.R[3 * r + 2] * pb[2]);
+    return T;
+}
+
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e) {
     const double *R = T.R, *t = T.t;
     double score = 0.0;
@@ -305,7 +338,7 @@ Scorer::Scorer(const double *src, const double *tgt, int64_t n, double tau)
     }
 }
 
-double Scorer::score(const Pose &T, std::vector<int32_t> &buf) const {
+double Scorer::score(const Pose &T, std::vector<int32_t> &buf, Metric metric) const {
     // R p + t - q = R p' + t' - q' with p' = p - cp, q' = q - cq and t' = R cp + t - cq.
     float Rf[9], tf[3];
     double tc[3];
@@ -331,7 +364,10 @@ double Scorer::score(const Pose &T, std::vector<int32_t> &buf) const {
         const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
         const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
         const double err = std::sqrt(x * x + y * y + z * z);
-        if (err < tau) score += (tau - err) / tau;
+        if (err < tau) {
+            const double v = (tau - err) / tau;
+            score += metric == Metric::Mae ? v : metric == Metric::Mse ? v * v : 1.0;
+        }
     }
     return score;
 }
