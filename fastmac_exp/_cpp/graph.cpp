@@ -316,17 +316,16 @@ ScreenData make_screen(const double *src, const double *tgt, int64_t n, double m
     return S;
 }
 
-// The symmetric CSR graph of the pairs that pass the screen S and then test(i, cand, n_cand, col, w) (the
-// exact test of row i's candidates j > i, ascending: writes the kept ones and their weights to col / w,
-// with room for n_cand + 8 entries, and returns how many).
-template <class Test>
-Csr assemble_graph(int64_t n, const ScreenData &S, int nthreads, Test &&test) {
+// The symmetric CSR graph whose upper rows row(i, buf, col, w) finds: it writes row i's neighbours j > i
+// (ascending) and their weights to col / w (room for n - i + 16 entries) and returns how many; buf is
+// scratch of n + 32 entries.
+template <class Row>
+Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
     Csr W;
     W.n = n;
     W.ptr.assign(n + 1, 0);
     W.upper.assign(n, 0);
     if (n == 0) return W;
-    const ScreenFn screen = pick_screen();
     // The upper part of each row (neighbours j > i), found in parallel; each thread appends its rows to its
     // own buffers (no allocation per row).
     struct Part {
@@ -349,11 +348,9 @@ Csr assemble_graph(int64_t n, const ScreenData &S, int nthreads, Test &&test) {
                     part.col.resize(cap);
                     part.w.resize(cap);
                 }
-                const size_t n_cand = screen(S, i, i + 1, n, buf.data());
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.size;
-                row_len[i] = (int64_t)test(i, buf.data(), n_cand, part.col.data() + part.size,
-                                           part.w.data() + part.size);
+                row_len[i] = (int64_t)row(i, buf.data(), part.col.data() + part.size, part.w.data() + part.size);
                 part.size += (size_t)row_len[i];
             }
     });
@@ -408,9 +405,9 @@ Csr assemble_graph(int64_t n, const ScreenData &S, int nthreads, Test &&test) {
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
     check_params(gp);
     nthreads = resolve_threads(nthreads, n);
-    if (n == 0) return assemble_graph(0, ScreenData{}, nthreads, [](int64_t, const int32_t *, size_t, int32_t *,
-                                                                   double *) { return (size_t)0; });
+    if (n == 0) return assemble_graph(0, nthreads, [](int64_t, int32_t *, int32_t *, double *) { return 0; });
     const ScreenData S = make_screen(src, tgt, n, max_distance(gp));
+    const ScreenFn screen = pick_screen();
     const TestFn test = pick_test();
     ExactData E;
     for (auto *v : {&E.sx, &E.sy, &E.sz, &E.tx, &E.ty, &E.tz}) v->resize(n);
@@ -418,55 +415,95 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
         E.sx[i] = src[3 * i], E.sy[i] = src[3 * i + 1], E.sz[i] = src[3 * i + 2];
         E.tx[i] = tgt[3 * i], E.ty[i] = tgt[3 * i + 1], E.tz[i] = tgt[3 * i + 2];
     }
-    return assemble_graph(n, S, nthreads, [&](int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
-                                              double *w) { return test(E, gp, i, cand, n_cand, col, w); });
+    return assemble_graph(n, nthreads, [&](int64_t i, int32_t *buf, int32_t *col, double *w) {
+        const size_t n_cand = screen(S, i, i + 1, n, buf);
+        return test(E, gp, i, buf, n_cand, col, w);
+    });
 }
 
 namespace {
 
 // TurboReg's pair test in float32, as its LibTorch code evaluates it: a = |p_i - p_j| as
 // sqrt(fma(dz, dz, fma(dy, dy, dx * dx))) (torch::norm's vectorised kernel; checked bit for bit against
-// torch 2.13 on the CPU), d = |a - b|; an edge iff d < tau and not a + b <= cut.
-struct LengthTest {
-    const float *src, *tgt;
+// torch 2.13 on the CPU), d = |a - b|; an edge iff d < tau and not a + b <= cut. Every pair j > i of row i
+// is tested (16 or 8 lanes at a time; IEEE sqrt and fma are exactly rounded, so all kernels agree bit for
+// bit). Coordinates in SoA form.
+struct LengthData {
+    std::vector<float> px, py, pz, qx, qy, qz;
     float tau, cut;
     bool hard;
 };
 
-__attribute__((always_inline)) inline size_t length_test_body(const LengthTest &L, int64_t i, const int32_t *cand,
-                                                              size_t n_cand, int32_t *col, double *w) {
-    const float *p = L.src + 3 * i, *q = L.tgt + 3 * i;
+inline double soft_weight(float d, float tau) {
+    const float r = d / tau;
+    return (double)std::max(0.0f, 1.0f - r * r);
+}
+
+__attribute__((always_inline)) inline size_t length_row_scalar(const LengthData &L, int64_t i, int64_t j0,
+                                                               int64_t j1, int32_t *col, double *w) {
     size_t cnt = 0;
-    for (size_t c = 0; c < n_cand; ++c) {
-        const int32_t j = cand[c];
-        const float *pj = L.src + 3 * (int64_t)j, *qj = L.tgt + 3 * (int64_t)j;
-        const float ax = p[0] - pj[0], ay = p[1] - pj[1], az = p[2] - pj[2];
-        const float bx = q[0] - qj[0], by = q[1] - qj[1], bz = q[2] - qj[2];
+    for (int64_t j = j0; j < j1; ++j) {
+        const float ax = L.px[i] - L.px[j], ay = L.py[i] - L.py[j], az = L.pz[i] - L.pz[j];
+        const float bx = L.qx[i] - L.qx[j], by = L.qy[i] - L.qy[j], bz = L.qz[i] - L.qz[j];
         const float a = std::sqrt(__builtin_fmaf(az, az, __builtin_fmaf(ay, ay, ax * ax)));
         const float b = std::sqrt(__builtin_fmaf(bz, bz, __builtin_fmaf(by, by, bx * bx)));
         const float d = std::fabs(a - b);
         if (d < L.tau && !(a + b <= L.cut)) {
-            col[cnt] = j;
-            if (L.hard) {
-                w[cnt++] = 1.0;
-            } else {
-                const float r = d / L.tau;
-                w[cnt++] = (double)std::max(0.0f, 1.0f - r * r);
-            }
+            col[cnt] = (int32_t)j;
+            w[cnt++] = L.hard ? 1.0 : soft_weight(d, L.tau);
         }
     }
     return cnt;
 }
 
-size_t length_test_generic(const LengthTest &L, int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
-                           double *w) {
-    return length_test_body(L, i, cand, n_cand, col, w);
+size_t length_row_generic(const LengthData &L, int64_t i, int32_t *col, double *w) {
+    return length_row_scalar(L, i, i + 1, (int64_t)L.px.size(), col, w);
 }
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-__attribute__((target("fma"))) size_t length_test_fma(const LengthTest &L, int64_t i, const int32_t *cand,
-                                                      size_t n_cand, int32_t *col, double *w) {
-    return length_test_body(L, i, cand, n_cand, col, w);
+__attribute__((target("avx512f,fma"))) size_t length_row_avx512(const LengthData &L, int64_t i, int32_t *col,
+                                                                double *w) {
+    const int64_t n = (int64_t)L.px.size();
+    const __m512 pxi = _mm512_set1_ps(L.px[i]), pyi = _mm512_set1_ps(L.py[i]), pzi = _mm512_set1_ps(L.pz[i]);
+    const __m512 qxi = _mm512_set1_ps(L.qx[i]), qyi = _mm512_set1_ps(L.qy[i]), qzi = _mm512_set1_ps(L.qz[i]);
+    const __m512 tau = _mm512_set1_ps(L.tau), cut = _mm512_set1_ps(L.cut);
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __m512i absmask = _mm512_set1_epi32(0x7fffffff);
+    const float *px = L.px.data(), *py = L.py.data(), *pz = L.pz.data();
+    const float *qx = L.qx.data(), *qy = L.qy.data(), *qz = L.qz.data();
+    size_t cnt = 0;
+    int64_t j = i + 1;
+    for (; j + 16 <= n; j += 16) {
+        const __m512 ax = _mm512_sub_ps(pxi, _mm512_loadu_ps(px + j));
+        const __m512 ay = _mm512_sub_ps(pyi, _mm512_loadu_ps(py + j));
+        const __m512 az = _mm512_sub_ps(pzi, _mm512_loadu_ps(pz + j));
+        const __m512 bx = _mm512_sub_ps(qxi, _mm512_loadu_ps(qx + j));
+        const __m512 by = _mm512_sub_ps(qyi, _mm512_loadu_ps(qy + j));
+        const __m512 bz = _mm512_sub_ps(qzi, _mm512_loadu_ps(qz + j));
+        const __m512 a = _mm512_sqrt_ps(_mm512_fmadd_ps(az, az, _mm512_fmadd_ps(ay, ay, _mm512_mul_ps(ax, ax))));
+        const __m512 b = _mm512_sqrt_ps(_mm512_fmadd_ps(bz, bz, _mm512_fmadd_ps(by, by, _mm512_mul_ps(bx, bx))));
+        const __m512 d = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(_mm512_sub_ps(a, b)), absmask));
+        const __mmask16 near = _mm512_cmp_ps_mask(d, tau, _CMP_LT_OQ);
+        if (!near) continue;
+        const __mmask16 keep = _mm512_mask_cmp_ps_mask(near, _mm512_add_ps(a, b), cut, _CMP_NLE_UQ);
+        if (!keep) continue;
+        _mm512_storeu_si512(col + cnt, _mm512_maskz_compress_epi32(keep, _mm512_add_epi32(_mm512_set1_epi32((int)j),
+                                                                                            lane)));
+        const size_t k = (size_t)__builtin_popcount((unsigned)keep);
+        if (L.hard) {
+            for (size_t c = 0; c < k; ++c) w[cnt + c] = 1.0;
+        } else {
+            alignas(64) float dl[16];
+            _mm512_store_ps(dl, _mm512_maskz_compress_ps(keep, d));
+            for (size_t c = 0; c < k; ++c) w[cnt + c] = soft_weight(dl[c], L.tau);
+        }
+        cnt += k;
+    }
+    return cnt + length_row_scalar(L, i, j, n, col + cnt, w + cnt);
+}
+
+__attribute__((target("fma"))) size_t length_row_fma(const LengthData &L, int64_t i, int32_t *col, double *w) {
+    return length_row_scalar(L, i, i + 1, (int64_t)L.px.size(), col, w);
 }
 #endif
 
@@ -475,24 +512,26 @@ __attribute__((target("fma"))) size_t length_test_fma(const LengthTest &L, int64
 Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads) {
     if (!(tau > 0.0f)) throw std::invalid_argument("tau must be positive");
     nthreads = resolve_threads(nthreads, n);
-    if (n == 0) return assemble_graph(0, ScreenData{}, nthreads, [](int64_t, const int32_t *, size_t, int32_t *,
-                                                                   double *) { return (size_t)0; });
-    std::vector<double> s64(3 * n), t64(3 * n);
-    double raw = 0.0;
-    for (int64_t k = 0; k < 3 * n; ++k) {
-        s64[k] = src[k];
-        t64[k] = tgt[k];
-        raw = std::max({raw, std::fabs(s64[k]), std::fabs(t64[k])});
+    LengthData L;
+    for (auto *v : {&L.px, &L.py, &L.pz, &L.qx, &L.qy, &L.qz}) v->resize(n);
+    for (int64_t i = 0; i < n; ++i) {
+        L.px[i] = src[3 * i], L.py[i] = src[3 * i + 1], L.pz[i] = src[3 * i + 2];
+        L.qx[i] = tgt[3 * i], L.qy[i] = tgt[3 * i + 1], L.qz[i] = tgt[3 * i + 2];
     }
-    // The float32 test's own rounding (raw coordinates, not centred) is well under 1e-5 of their size.
-    const ScreenData S = make_screen(s64.data(), t64.data(), n, (double)tau + 1e-5 * raw);
-    const LengthTest L{src, tgt, tau, cut, hard};
-    auto test = length_test_generic;
+    L.tau = tau;
+    L.cut = cut;
+    L.hard = hard;
+    auto row = length_row_generic;
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-    if (__builtin_cpu_supports("fma")) test = length_test_fma;
+    const char *env = std::getenv("FASTMAC_SCREEN");  // avx512 | avx2 | generic, as the other kernels
+    const std::string want = env ? env : "";
+    if (want != "generic" && __builtin_cpu_supports("fma")) row = length_row_fma;
+    if (want != "generic" && want != "avx2" && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("fma"))
+        row = length_row_avx512;
 #endif
-    return assemble_graph(n, S, nthreads, [&](int64_t i, const int32_t *cand, size_t n_cand, int32_t *col,
-                                              double *w) { return test(L, i, cand, n_cand, col, w); });
+    return assemble_graph(n, nthreads, [&](int64_t i, int32_t *, int32_t *col, double *w) {
+        return row(L, i, col, w);
+    });
 }
 
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b) {

@@ -272,6 +272,7 @@ class Scorer {
     double tau_, rp_ = 0, rq_ = 0, cp_[3] = {0, 0, 0}, cq_[3] = {0, 0, 0};
     std::vector<float> px_, py_, pz_, qx_, qy_, qz_;
     void (*screen_)() = nullptr;  // the residual screen picked for this CPU (cast back in pose.cpp)
+    void (*count_)() = nullptr;   // the same for the inlier count (Metric::Inliers)
 };
 
 // ---------------------------------------------------------------------------------------------

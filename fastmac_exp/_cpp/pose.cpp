@@ -299,6 +299,84 @@ __attribute__((target("avx512f"))) size_t screen_residuals_avx512(const Residual
 }
 #endif
 
+// Inlier-count screens (Metric::Inliers): the rows with e^2 <= lo2 in float32 are inliers for certain and
+// only counted; those with lo2 < e^2 <= hi2 go to out (ascending) for the exact test. Returns the count of
+// the certain ones; *n_out receives how many went to out.
+using CountScreenFn = int64_t (*)(const ResidualInput &, const float *, const float *, float, float, int32_t *,
+                                  size_t *);
+
+int64_t count_residuals_generic(const ResidualInput &in, const float *R, const float *t, float lo2, float hi2,
+                                int32_t *out, size_t *n_out) {
+    const float r0 = R[0], r1 = R[1], r2 = R[2], r3 = R[3], r4 = R[4], r5 = R[5], r6 = R[6], r7 = R[7],
+                r8 = R[8], t0 = t[0], t1 = t[1], t2 = t[2];
+    int64_t sure = 0;
+    size_t cnt = 0;
+    for (int64_t k = 0; k < in.n; ++k) {
+        const float x = r0 * in.px[k] + r1 * in.py[k] + r2 * in.pz[k] + t0 - in.qx[k];
+        const float y = r3 * in.px[k] + r4 * in.py[k] + r5 * in.pz[k] + t1 - in.qy[k];
+        const float z = r6 * in.px[k] + r7 * in.py[k] + r8 * in.pz[k] + t2 - in.qz[k];
+        const float e2 = x * x + y * y + z * z;
+        sure += e2 <= lo2;
+        if (e2 > lo2 && e2 <= hi2) out[cnt++] = (int32_t)k;
+    }
+    *n_out = cnt;
+    return sure;
+}
+
+#ifdef FASTMAC_HAVE_SIMD_RESIDUALS
+__attribute__((target("avx512f"))) int64_t count_residuals_avx512(const ResidualInput &in, const float *R,
+                                                                  const float *t, float lo2, float hi2,
+                                                                  int32_t *out, size_t *n_out) {
+    const __m512 r0 = _mm512_set1_ps(R[0]), r1 = _mm512_set1_ps(R[1]), r2 = _mm512_set1_ps(R[2]);
+    const __m512 r3 = _mm512_set1_ps(R[3]), r4 = _mm512_set1_ps(R[4]), r5 = _mm512_set1_ps(R[5]);
+    const __m512 r6 = _mm512_set1_ps(R[6]), r7 = _mm512_set1_ps(R[7]), r8 = _mm512_set1_ps(R[8]);
+    const __m512 t0 = _mm512_set1_ps(t[0]), t1 = _mm512_set1_ps(t[1]), t2 = _mm512_set1_ps(t[2]);
+    const __m512 l2 = _mm512_set1_ps(lo2), h2 = _mm512_set1_ps(hi2);
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const float *ipx = in.px, *ipy = in.py, *ipz = in.pz, *iqx = in.qx, *iqy = in.qy, *iqz = in.qz;
+    const int64_t n = in.n;
+    int64_t sure = 0;
+    size_t cnt = 0;
+    int64_t k = 0;
+    for (; k + 16 <= n; k += 16) {
+        const __m512 px = _mm512_loadu_ps(ipx + k), py = _mm512_loadu_ps(ipy + k), pz = _mm512_loadu_ps(ipz + k);
+        const __m512 x = _mm512_fmadd_ps(r0, px, _mm512_fmadd_ps(r1, py, _mm512_fmadd_ps(r2, pz,
+                                         _mm512_sub_ps(t0, _mm512_loadu_ps(iqx + k)))));
+        const __m512 y = _mm512_fmadd_ps(r3, px, _mm512_fmadd_ps(r4, py, _mm512_fmadd_ps(r5, pz,
+                                         _mm512_sub_ps(t1, _mm512_loadu_ps(iqy + k)))));
+        const __m512 z = _mm512_fmadd_ps(r6, px, _mm512_fmadd_ps(r7, py, _mm512_fmadd_ps(r8, pz,
+                                         _mm512_sub_ps(t2, _mm512_loadu_ps(iqz + k)))));
+        const __m512 e2 = _mm512_fmadd_ps(x, x, _mm512_fmadd_ps(y, y, _mm512_mul_ps(z, z)));
+        const __mmask16 lo = _mm512_cmp_ps_mask(e2, l2, _CMP_LE_OQ);
+        const __mmask16 band = _mm512_mask_cmp_ps_mask((__mmask16)~lo, e2, h2, _CMP_LE_OQ);
+        sure += __builtin_popcount((unsigned)lo);
+        if (band) {
+            _mm512_storeu_si512(out + cnt, _mm512_maskz_compress_epi32(band, _mm512_add_epi32(
+                                                                                _mm512_set1_epi32((int)k), lane)));
+            cnt += (size_t)__builtin_popcount((unsigned)band);
+        }
+    }
+    if (k < n) {
+        ResidualInput tail{ipx + k, ipy + k, ipz + k, iqx + k, iqy + k, iqz + k, n - k};
+        size_t more = 0;
+        sure += count_residuals_generic(tail, R, t, lo2, hi2, out + cnt, &more);
+        for (size_t c = cnt; c < cnt + more; ++c) out[c] += (int32_t)k;
+        cnt += more;
+    }
+    *n_out = cnt;
+    return sure;
+}
+#endif
+
+CountScreenFn pick_count_screen() {
+#ifdef FASTMAC_HAVE_SIMD_RESIDUALS
+    const char *env = std::getenv("FASTMAC_SCREEN");
+    const std::string want = env ? env : "";
+    if (want != "generic" && want != "avx2" && __builtin_cpu_supports("avx512f")) return count_residuals_avx512;
+#endif
+    return count_residuals_generic;
+}
+
 ResidualScreenFn pick_residual_screen() {
 #ifdef FASTMAC_HAVE_SIMD_RESIDUALS
     const char *env = std::getenv("FASTMAC_SCREEN");  // for tests: avx512 | avx2 | generic
@@ -315,6 +393,7 @@ ResidualScreenFn pick_residual_screen() {
 Scorer::Scorer(const double *src, const double *tgt, int64_t n, double tau)
     : src_(src), tgt_(tgt), n_(n), tau_(tau), px_(n), py_(n), pz_(n), qx_(n), qy_(n), qz_(n) {
     screen_ = reinterpret_cast<void (*)()>(pick_residual_screen());
+    count_ = reinterpret_cast<void (*)()>(pick_count_screen());
     for (int64_t i = 0; i < n; ++i)
         for (int r = 0; r < 3; ++r) {
             cp_[r] += src[3 * i + r];
@@ -350,8 +429,27 @@ double Scorer::score(const Pose &T, std::vector<int32_t> &buf, Metric metric) co
     // Float rounding of the inputs, the products and the sums stays far below 1e-5 of the magnitudes.
     const double lim = tau_ + 1e-5 * (rp_ + rq_ + norm3(tc)) + 1e-12;
     const float lim2 = (float)(lim * lim);
-    if ((int64_t)buf.size() < n_) buf.resize(n_);
+    if ((int64_t)buf.size() < n_ + 16) buf.resize(n_ + 16);
     const ResidualInput in{px_.data(), py_.data(), pz_.data(), qx_.data(), qy_.data(), qz_.data(), n_};
+    if (metric == Metric::Inliers) {
+        // Below tau - margin in float32 means below tau exactly: counted without the exact test.
+        const double lo = tau_ - (lim - tau_);
+        const float lo2 = lo > 0.0 ? (float)(lo * lo * (1.0 - 1e-6)) : -1.0f;
+        size_t n_band = 0;
+        const int64_t sure =
+            reinterpret_cast<CountScreenFn>(count_)(in, Rf, tf, lo2, lim2, buf.data(), &n_band);
+        int64_t exact = 0;
+        for (size_t c = 0; c < n_band; ++c) {
+            const int32_t i = buf[c];
+            const double *p = src_ + 3 * (int64_t)i, *q = tgt_ + 3 * (int64_t)i;
+            const double *R = T.R, *t = T.t;
+            const double x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0] - q[0];
+            const double y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1] - q[1];
+            const double z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2] - q[2];
+            exact += std::sqrt(x * x + y * y + z * z) < tau_;
+        }
+        return (double)(sure + exact);
+    }
     const size_t n_cand = reinterpret_cast<ResidualScreenFn>(screen_)(in, Rf, tf, lim2, buf.data());
     // Exactly as mae_score, over the candidates in increasing order (the others are not inliers).
     const double *R = T.R, *t = T.t;

@@ -16,6 +16,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <unordered_map>
 #include <utility>
 
@@ -184,10 +185,12 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     }
     const Csr W = length_graph(s32.data(), t32.data(), n, (float)p.tau, (float)p.radius_nms, p.hard, nthreads);
     r.n_edges = W.n_edges();
+    const double t_c = ms_since(t0);
     const std::vector<double> S = masked_square(W, W.w, nthreads, nullptr, Precision::Single);
     const Upper U = upper_positive(W, S);
     r.n_sog_edges = (int64_t)U.col.size();
     r.t_graph = ms_since(t0);
+    if (env_is("FASTMAC_TURBO_PROFILE", "1")) fprintf(stderr, "C %.1f ms, SC2+upper %.1f ms\n", t_c, r.t_graph - t_c);
     if (U.col.empty()) throw RegistrationFailed("TurboReg: SC^2 has no positive entry (no compatible triangle)");
 
     // 3. Pivots: topk over the flattened upper triangle (position a * n + b).
@@ -206,11 +209,12 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
 
     // 4. Two TurboCliques per pivot.
     std::vector<int64_t> third(2 * K);
-    parallel_region(nthreads, [&](int tid) {
+    DynamicRange pivots(0, K, 64);
+    parallel_region(nthreads, [&](int) {  // any tid but 0 may not run: work comes from the shared range
         std::vector<double> mark(n, 0.0);
         std::vector<Elem> rowbuf;
-        const int64_t per = (K + nthreads - 1) / nthreads;
-        for (int64_t k = tid * per; k < std::min(K, (tid + 1) * per); ++k) {
+        int64_t lo, hi;
+        while (pivots.next(lo, hi)) for (int64_t k = lo; k < hi; ++k) {
             const int64_t a = flat[k] / n, b = flat[k] % n;
             const double pivot = a < b ? U.at(a, b) : 0.0;
             for (int64_t q = U.ptr[a]; q < U.ptr[a + 1]; ++q) mark[U.col[q]] = U.val[q];
@@ -259,15 +263,16 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     std::vector<double> best_score(nthreads, -1.0);
     std::vector<int64_t> best_h(nthreads, -1);
     std::vector<Pose> best_pose(nthreads);
+    DynamicRange hyps(0, (int64_t)uniq.size(), 32);
     parallel_region(nthreads, [&](int tid) {
         std::vector<int32_t> scratch;
-        const int64_t m = (int64_t)uniq.size(), per = (m + nthreads - 1) / nthreads;
-        for (int64_t u = tid * per; u < std::min(m, (tid + 1) * per); ++u) {
+        int64_t lo, hi;
+        while (hyps.next(lo, hi)) for (int64_t u = lo; u < hi; ++u) {
             const int64_t h = uniq[u];
             const int32_t idx[3] = {(int32_t)(flat[h % K] / n), (int32_t)(flat[h % K] % n), (int32_t)third[h]};
             const Pose T = kabsch_weighted(src, tgt, idx, 3, nullptr, 1e-6);
             const double s = scorer.score(T, scratch, p.metric);
-            if (s > best_score[tid]) {  // ascending h within a thread: the first best stays
+            if (s > best_score[tid]) {  // each thread's chunks ascend: its first best stays
                 best_score[tid] = s;
                 best_h[tid] = h;
                 best_pose[tid] = T;
