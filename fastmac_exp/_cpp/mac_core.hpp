@@ -106,6 +106,10 @@ std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size 
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
                                   int64_t *core_size = nullptr, Precision precision = Precision::Mac);
 
+// The same for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
+// bitset rows (column blocks of at most ~32 MB of bitsets; AVX-512 VPOPCNTDQ where the CPU has it).
+std::vector<double> common_neighbours(const Csr &V, int nthreads);
+
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
 
