@@ -42,6 +42,9 @@ class Family:
     sampler_normalize: str  # the reference code's high-pass score normalisation: "minmax" or "none"
     up_axis: str  # the sensor frame's up direction, for viewers: "-y" (camera frames) or "+z" (LiDAR)
     buffer_model: str  # which of BUFFER's published weights fit this data
+    # TurboReg's defaults (backend=turboreg): max_N, tau_length_consis, num_pivot (K1), radiu_nms, tau_inlier,
+    # from TurboReg's README (3DMatch + FPFH) and its demo script demo_py/o3d_fpfh.py (KITTI-like)
+    turboreg: tuple[int, float, int, float, float] = (7000, 0.012, 2000, 0.15, 0.1)
 
     def graph(self, descriptor: str) -> tuple[str, float]:
         return self.graph_by_descriptor.get(descriptor, self.graph_default)
@@ -80,7 +83,7 @@ FAMILIES: dict[str, Family] = {
         name="kitti", kind="outdoor", code=3, voxel_size=0.3, inlier_threshold=0.6, re_thresh_deg=5.0,
         te_thresh_m=0.60, min_clique_size=3, graph_default=(QUADRATIC, 0.999),
         graph_by_descriptor=_table(fpfh=(QUADRATIC, 0.9)), resolution_from_clouds=False,
-        sampler_normalize="none", up_axis="+z", buffer_model="kitti",
+        sampler_normalize="none", up_axis="+z", buffer_model="kitti", turboreg=(6000, 0.1, 2500, 0.15, 0.4),
     ),
 }  # fmt: skip
 

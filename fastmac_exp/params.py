@@ -93,6 +93,7 @@ class MacParams:
     max_work: int = DEFAULT_MAX_WORK
     enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # auto only, work units a node; 0 = always bnb
     time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
+    family: str = ""  # the dataset family the defaults came from (mac_params_for); peers take theirs by it
 
     def __post_init__(self) -> None:
         if self.search not in SEARCHES:
@@ -139,7 +140,8 @@ def mac_params_for(
             f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold"
         )
     graph = replace(graph, **g)
-    base = MacParams(graph=graph, inlier_threshold=fam.inlier_threshold, min_clique_size=fam.min_clique_size)
+    base = MacParams(graph=graph, inlier_threshold=fam.inlier_threshold, min_clique_size=fam.min_clique_size,
+                     family=fam.name)
     m = {k: v for k, v in (mac_overrides or {}).items() if v is not None}
     known = {
         "inlier_threshold",

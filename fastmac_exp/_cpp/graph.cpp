@@ -467,6 +467,7 @@ __attribute__((target("avx512f,fma"))) size_t length_row_avx512(const LengthData
     const __m512 pxi = _mm512_set1_ps(L.px[i]), pyi = _mm512_set1_ps(L.py[i]), pzi = _mm512_set1_ps(L.pz[i]);
     const __m512 qxi = _mm512_set1_ps(L.qx[i]), qyi = _mm512_set1_ps(L.qy[i]), qzi = _mm512_set1_ps(L.qz[i]);
     const __m512 tau = _mm512_set1_ps(L.tau), cut = _mm512_set1_ps(L.cut);
+    const __m512 k1 = _mm512_set1_ps(2.03f * L.tau * L.tau), k2 = _mm512_set1_ps(1e-11f);
     const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     const __m512i absmask = _mm512_set1_epi32(0x7fffffff);
     const float *px = L.px.data(), *py = L.py.data(), *pz = L.pz.data();
@@ -480,8 +481,15 @@ __attribute__((target("avx512f,fma"))) size_t length_row_avx512(const LengthData
         const __m512 bx = _mm512_sub_ps(qxi, _mm512_loadu_ps(qx + j));
         const __m512 by = _mm512_sub_ps(qyi, _mm512_loadu_ps(qy + j));
         const __m512 bz = _mm512_sub_ps(qzi, _mm512_loadu_ps(qz + j));
-        const __m512 a = _mm512_sqrt_ps(_mm512_fmadd_ps(az, az, _mm512_fmadd_ps(ay, ay, _mm512_mul_ps(ax, ax))));
-        const __m512 b = _mm512_sqrt_ps(_mm512_fmadd_ps(bz, bz, _mm512_fmadd_ps(by, by, _mm512_mul_ps(bx, bx))));
+        const __m512 a2 = _mm512_fmadd_ps(az, az, _mm512_fmadd_ps(ay, ay, _mm512_mul_ps(ax, ax)));
+        const __m512 b2 = _mm512_fmadd_ps(bz, bz, _mm512_fmadd_ps(by, by, _mm512_mul_ps(bx, bx)));
+        // Screen without the square roots (as first_order's): |a - b| < tau needs
+        // (a^2 - b^2)^2 <= 2 tau^2 (a^2 + b^2), with room for the float rounding.
+        const __m512 diff = _mm512_sub_ps(a2, b2), sum = _mm512_add_ps(a2, b2);
+        if (!_mm512_cmp_ps_mask(_mm512_mul_ps(diff, diff), _mm512_mul_ps(sum, _mm512_fmadd_ps(k2, sum, k1)),
+                                _CMP_LE_OQ))
+            continue;
+        const __m512 a = _mm512_sqrt_ps(a2), b = _mm512_sqrt_ps(b2);
         const __m512 d = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(_mm512_sub_ps(a, b)), absmask));
         const __mmask16 near = _mm512_cmp_ps_mask(d, tau, _CMP_LT_OQ);
         if (!near) continue;

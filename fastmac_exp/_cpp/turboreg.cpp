@@ -261,6 +261,15 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
         }
     }
     r.n_unique = (int64_t)uniq.size();
+    if (env_is("FASTMAC_TURBO_PROFILE", "1")) {
+        auto tk = Clock::now();
+        double acc = 0;
+        for (int64_t h : uniq) {
+            const int32_t idx[3] = {(int32_t)(flat[h % K] / n), (int32_t)(flat[h % K] % n), (int32_t)third[h]};
+            acc += kabsch_weighted(src, tgt, idx, 3, nullptr, 1e-6).t[0];
+        }
+        fprintf(stderr, "dedup %.2f ms, kabsch x%zu %.2f ms (%g)\n", ms_since(t0), uniq.size(), ms_since(tk), acc);
+    }
     const Scorer scorer(src, tgt, n, p.tau_inlier);
     std::vector<double> best_score(nthreads, -1.0);
     std::vector<int64_t> best_h(nthreads, -1);
