@@ -2,7 +2,12 @@
 
     python benchmarks/bench_core.py [--quick] [--sizes 1000 5000] [--ratios 1 0.2] [--threads 0]
                                     [--no-python] [--no-dense] [--no-outdoor | --outdoor-only]
-                                    [--json out.json]
+                                    [--no-turboreg | --turboreg-only] [--json out.json]
+
+TurboReg section (issue 32): backend=turboreg, MAC, FastMAC@20 and FastMAC@20 + TurboReg end to end on the
+10 real reference sets of ../shared/data/turboreg_reference (indoor and outdoor, <= 5,000 FPFH
+correspondences), medians of interleaved rounds, with TurboReg's stages and peak RSS growth; without
+--quick also 50,000 synthetic 3DMatch-like correspondences with every one kept (max_N null).
 
 Outdoor section (issue 11): for every outdoor pair in ../shared/data (KITTI, LiDAR, Apollo) and every
 synthetic KITTI-like pair, FPFH with 5,000 correspondences; then, end to end from the correspondences
@@ -653,6 +658,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--products-only", action="store_true", help="only the sampler-graph table of the outdoor pairs"
     )
+    ap.add_argument("--turboreg-only", action="store_true", help="only the TurboReg section (issue 32)")
+    ap.add_argument("--no-turboreg", action="store_true", help="skip the TurboReg section")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     ap.add_argument("--scores-only", action="store_true", help="only the estimated-scores section (issue 29)")
     ap.add_argument("--max-n", type=int, default=1_000_000, help="largest N of the estimated-scores section")
@@ -670,6 +677,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.products_only:
         bench_products([(name, corr) for name, corr, _ in outdoor_pairs(args.quick)], args)
+        return 0
+    if args.turboreg_only:
+        rows = bench_turboreg(args)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1, default=float))
         return 0
     if args.outdoor_only:
         args.reps = args.reps or 3
@@ -787,11 +799,106 @@ def main(argv: list[str] | None = None) -> int:
                 f"sampling {r.cpp['sampling']:.0f} ms + MAC on {r.k}: {r.cpp['mac']:.0f} ms"
             )
     outdoor = [] if args.no_outdoor else bench_outdoor(args)
+    turbo = [] if args.no_turboreg else bench_turboreg(args)
     if args.json:
-        data = {"indoor": [r.__dict__ for r in rows], "outdoor": [r.__dict__ for r in outdoor]}
+        data = {"indoor": [r.__dict__ for r in rows], "outdoor": [r.__dict__ for r in outdoor], "turboreg": turbo}
         args.json.write_text(json.dumps(data, indent=1, default=float))
         print(f"rows written to {args.json}")
     return 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# TurboReg (issue 32): backend=turboreg beside MAC and FastMAC on the same inputs
+
+TURBO_METHODS = ("turboreg", "mac", "fastmac20", "fastmac20_turboreg")
+
+
+def turbo_inputs() -> list[tuple[str, str, Correspondences, np.ndarray]]:
+    """(name, family, correspondences, GT): the 10 fixed sets of ../shared/data/turboreg_reference (real
+    indoor and outdoor pairs, the project's FPFH, <= 5,000 correspondences each)."""
+    ref = DATA / "turboreg_reference" / "turboreg_reference.json"
+    if not ref.exists():
+        print(f"[turboreg] no {ref}: real pairs skipped")
+        return []
+    out = []
+    for name, e in json.loads(ref.read_text())["pairs"].items():
+        z = np.load(ref.parent / e["file"], allow_pickle=True)
+        out.append((name, str(z["family"]), Correspondences(z["src"], z["tgt"], labels=z["labels"]), z["gt"]))
+    return out
+
+
+def turbo_once(method: str, corr: Correspondences, family: str, max_n="family"):
+    """(ms end to end from the correspondences, result, peak RSS growth in MB) of one method, one run."""
+    from fastmac_exp.backends.turboreg import TurboRegBackend
+    from fastmac_exp.params import mac_params_for
+    from fastmac_exp.pipeline import register_correspondences
+    from fastmac_exp.samplers import GraphFilterSampler, NoSampler
+
+    params = mac_params_for(family, "fpfh")
+    backend = TurboRegBackend(max_N=max_n) if method.endswith("turboreg") else CppBackend()
+    fast = method.startswith("fastmac20")
+    smp = GraphFilterSampler("highpass") if fast else NoSampler()
+    base = peak_rss_mb() if reset_peak_rss() else float("nan")
+    t0 = time.perf_counter()
+    res, _ = register_correspondences(corr, params, smp, backend, 0.2 if fast else 1.0, family,
+                                      np.random.default_rng(0), sample_graph=params.graph)  # fmt: skip
+    ms = (time.perf_counter() - t0) * 1e3
+    return ms, res, peak_rss_mb() - base
+
+
+def bench_turboreg(args) -> list[dict]:
+    """Interleaved rounds (medians) of TurboReg, MAC, FastMAC@20 and FastMAC@20 + TurboReg on the real
+    reference sets; then 50,000 synthetic 3DMatch-like correspondences with every one kept (max_N null)."""
+    from fastmac_exp.families import family as family_record
+    from fastmac_exp.metrics import pose_errors
+
+    reps = args.reps or 3
+    threads = cpp.core().default_threads()
+    print(f"\nTurboReg (backend=turboreg) beside MAC and FastMAC@20, end to end, medians of {reps} interleaved "
+          f"rounds, {threads} thread(s); ms (success), TurboReg's stages and peak RSS growth")  # fmt: skip
+    print(f"  {'pair':38s} {'N':>5s} | {'TurboReg':>12s} {'MAC':>12s} {'FastMAC20':>12s} {'F20+TR':>12s} | "
+          f"{'MAC/TR':>6s} | TR graph/pivots/hyp/pose ms | TR MB")  # fmt: skip
+    rows = []
+    inputs = [(name, fam, corr, gt, "family") for name, fam, corr, gt in turbo_inputs()]
+    if not args.quick:
+        corr, gt = synthetic(50_000, seed=50_000)
+        inputs.append(("synthetic 3DMatch-like, all", "3dmatch", corr, gt, None))
+    for name, fam, corr, gt, max_n in inputs:
+        runs = {m: [] for m in TURBO_METHODS}
+        big = len(corr) > 10_000
+        methods = TURBO_METHODS
+        for _ in range(1 if big else reps):
+            for m in methods:
+                try:
+                    ms, res, mb = turbo_once(m, corr, fam, max_n)
+                    rec = family_record(fam)
+                    ok = pose_errors(res.pose, gt, rec.re_thresh_deg, rec.te_thresh_m).success
+                    runs[m].append((ms, ok, res.timings, mb))
+                except FastMacError as exc:
+                    runs[m].append((float("nan"), False, {}, float("nan")))
+                    print(f"    {m}: {exc}")
+        med = {m: statistics.median(r[0] for r in runs[m]) for m in methods}
+        ok = {m: runs[m][-1][1] for m in methods}
+        tr = runs["turboreg"][-1][2]
+        stages = "/".join(f"{statistics.median(r[2].get(s, float('nan')) for r in runs['turboreg']):.1f}"
+                          for s in ("graph", "pivots", "hypotheses", "pose"))  # fmt: skip
+        mb = max(r[3] for r in runs["turboreg"])
+        cells = " ".join(f"{med[m]:8.1f} ({'y' if ok[m] else 'n'})" for m in methods)
+        print(f"  {name[:38]:38s} {len(corr):5d} | {cells} | {med['mac'] / med['turboreg']:6.2f} | "
+              f"{stages:>27s} | {mb:5.0f}")  # fmt: skip
+        rows.append({"pair": name, "family": fam, "n": len(corr), "ms": med, "success": ok, "turboreg_mb": mb,
+                     "turboreg_stages": {s: tr.get(s) for s in ("graph", "pivots", "hypotheses", "pose")}})
+        sys.stdout.flush()
+    indoor = [r["ms"]["turboreg"] for r in rows if r["family"] != "kitti" and r["n"] <= 10_000]
+    outdoor = [r["ms"]["turboreg"] for r in rows if r["family"] == "kitti"]
+    mbs = [r["turboreg_mb"] for r in rows if r["n"] <= 10_000]
+    if indoor:
+        print(f"  targets: TurboReg indoor max {max(indoor):.1f} ms (< 20), outdoor max {max(outdoor or [0]):.1f} ms "
+              f"(< 40), peak RSS growth max {max(mbs):.0f} MB (< 200)")  # fmt: skip
+    for r in rows:
+        if r["n"] > 10_000:
+            print(f"  50,000 with every correspondence: {r['ms']['turboreg']:.0f} ms (< 2000)")
+    return rows
 
 
 # ---------------------------------------------------------------------------------------------------
