@@ -140,7 +140,9 @@ for study in "${STUDIES[@]}"; do
       # RANSAC 10k (10 s per pair) runs on the 3dmatch family and the real pairs only
       for d in $DATA; do
         methods=""
-        case $d in kitti | 3dlomatch) methods="+method=mac,fastmac50,fastmac20,ransac1k,fgr,kiss_matcher" ;; esac
+        case $d in kitti | 3dlomatch) methods="+method=mac,fastmac50,fastmac20,ransac1k,fgr,kiss_matcher,turboreg,fastmac20_turboreg" ;; esac
+        # SOTA_METHODS=mac,turboreg,fastmac20_turboreg: only these members (into state_of_the_art_<d> all the same)
+        [ -n "${SOTA_METHODS:-}" ] && methods="+method=$SOTA_METHODS"
         # shellcheck disable=SC2046
         sweep "$OUT/state_of_the_art_$d" +experiment=state_of_the_art $(data_args "$d") $methods
       done ;;

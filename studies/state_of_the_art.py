@@ -12,16 +12,22 @@ import pandas as pd
 from fastmac_exp.report import markdown_table
 from studies.common import DATA, PAPER_SOTA, SHORT, Page, data_heading, fnum, ms, text
 
-METHOD_ORDER = ("mac", "fastmac50", "fastmac20", "ransac1k", "ransac10k", "fgr", "kiss_matcher")
+METHOD_ORDER = ("mac", "fastmac50", "fastmac20", "ransac1k", "ransac10k", "fgr", "kiss_matcher", "turboreg",
+                "fastmac20_turboreg")
 METHOD_NAMES = {"mac": "MAC", "fastmac50": "FastMAC@50", "fastmac20": "FastMAC@20", "ransac1k": "RANSAC 1k",
-                "ransac10k": "RANSAC 10k", "fgr": "FGR", "kiss_matcher": "KISS-Matcher"}  # fmt: skip
+                "ransac10k": "RANSAC 10k", "fgr": "FGR", "kiss_matcher": "KISS-Matcher", "turboreg": "TurboReg",
+                "fastmac20_turboreg": "FastMAC@20 + TurboReg"}  # fmt: skip
 
 
 def method_of(t: pd.DataFrame) -> pd.Series:
-    """State-of-the-art member of a row: fastmac<percent> for high-pass, else the backend (cpp = mac)."""
-    out = t["backend"].astype(str).replace({"cpp": "mac"})
+    """State-of-the-art member of a row: fastmac<percent> for high-pass (fastmac<percent>_<backend> in front
+    of a backend other than MAC's), else the backend (cpp = mac)."""
+    backend = t["backend"].astype(str)
+    out = backend.replace({"cpp": "mac"})
     fast = t["sampler"].astype(str).eq("highpass")
     out[fast] = "fastmac" + (t.loc[fast, "ratio"].astype(float) * 100).round().astype(int).astype(str)
+    other = fast & ~backend.isin(["cpp", "python"])
+    out[other] = out[other] + "_" + backend[other]
     return out
 
 
