@@ -2,7 +2,8 @@
 // without its N x N dense matrices.
 //
 //  1. C: the length-consistency graph of the first max_N correspondences (length_graph, float32 as upstream).
-//  2. SC^2 = C (.) (C C) on C's support (masked_square: exact integer counts for the hard graph).
+//  2. SC^2 = C (.) (C C) on C's support: common_neighbours (bitset AND + popcount, exact counts) for the
+//     hard graph, masked_square for the soft one (FASTMAC_TURBO_SC2=masked: masked_square for both).
 //  3. Pivots: torch.topk(triu(SC^2, 1).flatten(), K1), reproduced with its tie order (below).
 //  4. TurboCliques: for pivot (a, b) the two c maximising SC2_ab + SC2_ac + SC2_bc over the c with
 //     SC2_ac > 0 and SC2_bc > 0 in the upper triangle (c > a, b), again torch.topk(.., 2) with its ties;
@@ -16,7 +17,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <cstdio>
 #include <unordered_map>
 #include <utility>
 
@@ -185,14 +185,12 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     }
     const Csr W = length_graph(s32.data(), t32.data(), n, (float)p.tau, (float)p.radius_nms, p.hard, nthreads);
     r.n_edges = W.n_edges();
-    const double t_c = ms_since(t0);
     const std::vector<double> S = p.hard && !env_is("FASTMAC_TURBO_SC2", "masked")
                                       ? common_neighbours(W, nthreads)
                                       : masked_square(W, W.w, nthreads, nullptr, Precision::Single);
     const Upper U = upper_positive(W, S);
     r.n_sog_edges = (int64_t)U.col.size();
     r.t_graph = ms_since(t0);
-    if (env_is("FASTMAC_TURBO_PROFILE", "1")) fprintf(stderr, "C %.1f ms, SC2+upper %.1f ms\n", t_c, r.t_graph - t_c);
     if (U.col.empty()) throw RegistrationFailed("TurboReg: SC^2 has no positive entry (no compatible triangle)");
 
     // 3. Pivots: topk over the flattened upper triangle (position a * n + b).
@@ -261,15 +259,6 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
         }
     }
     r.n_unique = (int64_t)uniq.size();
-    if (env_is("FASTMAC_TURBO_PROFILE", "1")) {
-        auto tk = Clock::now();
-        double acc = 0;
-        for (int64_t h : uniq) {
-            const int32_t idx[3] = {(int32_t)(flat[h % K] / n), (int32_t)(flat[h % K] % n), (int32_t)third[h]};
-            acc += kabsch_weighted(src, tgt, idx, 3, nullptr, 1e-6).t[0];
-        }
-        fprintf(stderr, "dedup %.2f ms, kabsch x%zu %.2f ms (%g)\n", ms_since(t0), uniq.size(), ms_since(tk), acc);
-    }
     const Scorer scorer(src, tgt, n, p.tau_inlier);
     std::vector<double> best_score(nthreads, -1.0);
     std::vector<int64_t> best_h(nthreads, -1);
