@@ -113,7 +113,9 @@ def test_state_of_the_art_methods_are_distinct(method):
         {k: v for k, v in OmegaConf.to_container(cfg.sampler, resolve=True).items() if k != "name"}
     )
     if method.startswith("fastmac"):
-        assert sampler.name == "highpass" and cfg.ratio == int(method[7:]) / 100
+        percent, _, on = method[7:].partition("_")  # fastmac20_turboreg: FastMAC@20 in front of TurboReg
+        assert sampler.name == "highpass" and cfg.ratio == int(percent) / 100
+        assert backend.name == (on or "cpp")
     else:
         assert sampler.name == "none"
     if method.startswith("ransac"):
