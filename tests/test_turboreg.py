@@ -92,6 +92,10 @@ def test_cliques_and_pose_match_a_dense_torch_oracle():
     iu = np.nonzero(np.triu(c, 1))
     assert len(g["i"]) == len(iu[0]) and (g["i"] == iu[0]).all() and (g["j"] == iu[1]).all()
     assert (g["sc2"] == up[g["i"], g["j"]]).all()  # SC^2 exactly
+    np.testing.assert_array_equal(g["sc2_masked"], g["sc2"])  # bitset counts = the core's masked square
+    soft = core.core().length_graph_edges(corr.src, corr.tgt, kw["tau"], kw["radius_nms"], hard=False)
+    np.testing.assert_array_equal(soft["i"], g["i"])
+    assert ((soft["w"] > 0) & (soft["w"] <= 1)).all()
     # the oracle's best hypothesis (IN, first argmax) and refinement, in float64
     r = run(corr.src, corr.tgt, **kw)
     counts = []

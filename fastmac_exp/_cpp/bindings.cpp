@@ -359,19 +359,24 @@ nb::dict length_graph_edges(const Points &src, const Points &tgt, double tau, do
         t32[k] = (float)tgt.data()[k];
     }
     std::vector<int64_t> ei, ej;
-    std::vector<double> ew, es;
+    std::vector<double> ew, es, em;
     {
         nb::gil_scoped_release nogil;
         const fastmac::Csr W = fastmac::length_graph(s32.data(), t32.data(), n, (float)tau, (float)cut, hard,
                                                      num_threads);
-        const std::vector<double> S = fastmac::masked_square(W, W.w, num_threads, nullptr,
-                                                             fastmac::Precision::Single);
+        // TurboReg's SC^2: bitset counts for the hard graph, masked_square for the soft one (and as a check)
+        const std::vector<double> S = hard ? fastmac::common_neighbours(W, num_threads)
+                                           : fastmac::masked_square(W, W.w, num_threads, nullptr,
+                                                                    fastmac::Precision::Single);
+        const std::vector<double> M = fastmac::masked_square(W, W.w, num_threads, nullptr,
+                                                             fastmac::Precision::Double);
         for (int64_t i = 0; i < n; ++i)
             for (int64_t q = W.upper[i]; q < W.ptr[i + 1]; ++q) {
                 ei.push_back(i);
                 ej.push_back(W.col[q]);
                 ew.push_back(W.w[q]);
                 es.push_back(S[q]);
+                em.push_back(M[q]);
             }
     }
     nb::dict d;
@@ -379,6 +384,7 @@ nb::dict length_graph_edges(const Points &src, const Points &tgt, double tau, do
     d["j"] = to_numpy(std::move(ej));
     d["w"] = to_numpy(std::move(ew));
     d["sc2"] = to_numpy(std::move(es));
+    d["sc2_masked"] = to_numpy(std::move(em));
     return d;
 }
 
@@ -519,7 +525,7 @@ NB_MODULE(_mac_core, m) {
           "radius_nms"_a = 0.15, "tau_inlier"_a = 0.1, "metric"_a = "IN", "hard"_a = true, "refine_iters"_a = 20,
           "num_threads"_a = 0, "TurboReg (ICCV 2025) on the CPU: pose, winning 3-clique, counts, stage timings (ms)");
     m.def("length_graph_edges", &length_graph_edges, "src"_a, "tgt"_a, "tau"_a, "cut"_a, "hard"_a = true,
-          "num_threads"_a = 0, "TurboReg's compatibility graph C and SC^2 on it: upper edges i < j");
+          "num_threads"_a = 0, "TurboReg's compatibility graph C and SC^2 on it (sc2; sc2_masked: masked_square in float64): upper edges i < j");
     m.def("torch_topk_sparse", &torch_topk_sparse, "dim"_a, "k"_a, "pos"_a, "val"_a,
           "torch.topk's positions (ties included) of a sparse non-negative sequence");
     m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,

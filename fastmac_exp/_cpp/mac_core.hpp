@@ -108,7 +108,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
 
 // The same for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
 // bitset rows (column blocks of at most ~32 MB of bitsets; AVX-512 VPOPCNTDQ where the CPU has it).
-std::vector<double> common_neighbours(const Csr &V, int nthreads);
+// upper_only: only the entries j > i are filled (the others are 0).
+std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only = false);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);

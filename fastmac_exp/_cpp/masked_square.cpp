@@ -575,7 +575,7 @@ AndCountFn pick_and_count() {
 
 }  // namespace
 
-std::vector<double> common_neighbours(const Csr &V, int nthreads) {
+std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only) {
     nthreads = resolve_threads(nthreads, V.n);
     const int64_t n = V.n, words = (n + 63) / 64;
     // Column blocks of bw words, so that the block's bitsets (n x bw words) stay within ~32 MB.
@@ -598,14 +598,13 @@ std::vector<double> common_neighbours(const Csr &V, int nthreads) {
                 count[p] += (int32_t)and_count(bi, bits.data() + (int64_t)V.col[p] * bw, nw);
         });
     }
-    std::vector<double> S(V.nnz(), 0.0);
-    std::vector<uint8_t> done(V.nnz(), 0);
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) {
-            S[p] = (double)count[p];
-            done[p] = 1;
-        }
-    mirror_entries(V, S, done);
+    std::vector<double> S(count.begin(), count.end());
+    if (!upper_only) {
+        std::vector<uint8_t> done(V.nnz(), 0);
+        for (int64_t i = 0; i < n; ++i)
+            for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) done[p] = 1;
+        mirror_entries(V, S, done);
+    }
     return S;
 }
 

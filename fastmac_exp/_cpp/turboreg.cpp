@@ -186,7 +186,7 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     const Csr W = length_graph(s32.data(), t32.data(), n, (float)p.tau, (float)p.radius_nms, p.hard, nthreads);
     r.n_edges = W.n_edges();
     const std::vector<double> S = p.hard && !env_is("FASTMAC_TURBO_SC2", "masked")
-                                      ? common_neighbours(W, nthreads)
+                                      ? common_neighbours(W, nthreads, /*upper_only=*/true)
                                       : masked_square(W, W.w, nthreads, nullptr, Precision::Single);
     const Upper U = upper_positive(W, S);
     r.n_sog_edges = (int64_t)U.col.size();
