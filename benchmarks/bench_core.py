@@ -846,6 +846,35 @@ def turbo_once(method: str, corr: Correspondences, family: str, max_n="family"):
     return ms, res, peak_rss_mb() - base
 
 
+TURBO_MEMORY = """
+import sys, numpy as np
+from pathlib import Path
+from fastmac_exp.backends.turboreg import TurboRegBackend
+from fastmac_exp.params import mac_params_for
+from fastmac_exp.types import Correspondences
+def hwm():
+    return next(int(x.split()[1]) / 1024 for x in Path("/proc/self/status").read_text().splitlines() if x.startswith("VmHWM:"))
+z = np.load(sys.argv[1], allow_pickle=True)
+corr, params, backend = Correspondences(z["src"], z["tgt"]), mac_params_for(str(z["family"]), "fpfh"), TurboRegBackend()
+base = hwm()
+backend.register(corr, params)
+print(hwm(), hwm() - base)
+"""
+
+
+def turbo_memory(npz: Path) -> tuple[float, float]:
+    """(peak RSS, its growth during the call) in MB of TurboReg alone on one reference set, in a fresh
+    process (in this one, memory freed by earlier runs stays mapped: keep_freed_memory)."""
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", TURBO_MEMORY, str(npz)], capture_output=True, text=True, cwd=REPO)
+    try:
+        peak, growth = (float(v) for v in out.stdout.split()[-2:])
+        return peak, growth
+    except ValueError:
+        return float("nan"), float("nan")
+
+
 def bench_turboreg(args) -> list[dict]:
     """Interleaved rounds (medians) of TurboReg, MAC, FastMAC@20 and FastMAC@20 + TurboReg on the real
     reference sets; then 50,000 synthetic 3DMatch-like correspondences with every one kept (max_N null)."""
@@ -855,9 +884,9 @@ def bench_turboreg(args) -> list[dict]:
     reps = args.reps or 3
     threads = cpp.core().default_threads()
     print(f"\nTurboReg (backend=turboreg) beside MAC and FastMAC@20, end to end, medians of {reps} interleaved "
-          f"rounds, {threads} thread(s); ms (success), TurboReg's stages and peak RSS growth")  # fmt: skip
+          f"rounds, {threads} thread(s); ms (success), TurboReg's stages and its peak RSS growth")  # fmt: skip
     print(f"  {'pair':38s} {'N':>5s} | {'TurboReg':>12s} {'MAC':>12s} {'FastMAC20':>12s} {'F20+TR':>12s} | "
-          f"{'MAC/TR':>6s} | TR graph/pivots/hyp/pose ms | TR MB")  # fmt: skip
+          f"{'MAC/TR':>6s} | TR graph/pivots/hyp/pose ms | TR MB (fresh process; 50k: in process)")  # fmt: skip
     rows = []
     inputs = [(name, fam, corr, gt, "family") for name, fam, corr, gt in turbo_inputs()]
     if not args.quick:
@@ -882,7 +911,8 @@ def bench_turboreg(args) -> list[dict]:
         tr = runs["turboreg"][-1][2]
         stages = "/".join(f"{statistics.median(r[2].get(s, float('nan')) for r in runs['turboreg']):.1f}"
                           for s in ("graph", "pivots", "hypotheses", "pose"))  # fmt: skip
-        mb = max(r[3] for r in runs["turboreg"])
+        npz = DATA / "turboreg_reference" / f"{name}.npz"
+        mb = turbo_memory(npz)[1] if npz.exists() else max(r[3] for r in runs["turboreg"])
         cells = " ".join(f"{med[m]:8.1f} ({'y' if ok[m] else 'n'})" for m in methods)
         print(f"  {name[:38]:38s} {len(corr):5d} | {cells} | {med['mac'] / med['turboreg']:6.2f} | "
               f"{stages:>27s} | {mb:5.0f}")  # fmt: skip
