@@ -88,8 +88,13 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
 //           50,000: ~2,500), and the reference computes G in float32 too (spec 2.3). Small graphs (the
 //           C++/Python parity tests, up to 300 correspondences) stay float64. FASTMAC_MAC_PRECISION=double
 //           keeps float64 everywhere.
+//           In cores of at least kHalfCore nodes, on CPUs with AVX512_BF16, the core's operands are
+//           rounded to bfloat16 and summed in float32 (twice the multiply-adds a second: the near-clique
+//           of 5,000 that samples=5000 keeps of 200,000 correspondences, a core of ~5,000, spends ~6e10
+//           of them in each of MAC's two products). FASTMAC_MAC_PRECISION=single stops at float32.
 enum class Precision { Double, Single, Mac };
 constexpr int64_t kSingleCore = 512;
+constexpr int64_t kHalfCore = 2048;
 
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
 std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr,
@@ -99,6 +104,9 @@ std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size 
 // V.col; zero values are allowed and give 0). Dense dot products inside the dense core (masked_square.cpp).
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
                                   int64_t *core_size = nullptr, Precision precision = Precision::Mac);
+
+// Whether this build and CPU run MAC's cores of >= kHalfCore nodes in bfloat16 (FASTMAC_GEMM permitting).
+bool bf16_cores();
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
