@@ -319,16 +319,12 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
 // rounding is unbiased (E[bf16(x)] = x) and the errors of a sum of many products average out. Rounding to
 // nearest is biased on a core's weights, which crowd just below 1 (a relative error of ~4e-4 in every
 // core entry of G, the same sign throughout; ~3e-5 with this). The bits are a hash of (row k, core
-// column c), so the result depends neither on the thread count nor on the run. Finite, non-negative x.
-inline uint16_t to_bf16(float x, uint64_t k, uint64_t c) {
+// column c, one multiply), so the result depends neither on the thread count nor on the run. Finite, non-negative x.
+inline uint16_t to_bf16(float x, uint64_t key) {
     uint32_t u;
     std::memcpy(&u, &x, sizeof(u));
-    uint64_t h = (k + 1) * 0x9E3779B97F4A7C15ull ^ (c + 1) * 0xC2B2AE3D27D4EB4Full;
-    h ^= h >> 31;
-    h *= 0xBF58476D1CE4E5B9ull;
-    h ^= h >> 29;
-    const uint64_t v = (uint64_t)u + (h & 0xffffu);  // no overflow into the sign: x < 2^127
-    return (uint16_t)(v >> 16);
+    const uint64_t h = (key + 1) * 0x9E3779B97F4A7C15ull;  // the top 16 bits of a Weyl sequence
+    return (uint16_t)(((uint64_t)u + (h >> 48)) >> 16);   // no carry into the sign: x < 2^127
 }
 
 // core_products in bfloat16 with float32 sums: D rounded to bfloat16 (stochastically), packed in pairs of rows (rows 2r
@@ -363,7 +359,7 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
                 const float *dr = dense.data() + (r - r0) * ld;
                 const int64_t half = r & 1, r2 = r / 2;
                 // one rounding of each entry of D, used in both packings
-                for (int64_t c = 0; c < ld; ++c) row16[c] = dr[c] != 0.0f ? to_bf16(dr[c], r, c) : 0;
+                for (int64_t c = 0; c < ld; ++c) row16[c] = dr[c] != 0.0f ? to_bf16(dr[c], (uint64_t)r * ld + c) : 0;
                 for (int64_t ip = 0; ip < n_ip; ++ip) {
                     const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
                     uint16_t *dst = A16 + (((size_t)ip * nk2 + r2) * mr) * 2 + half;
