@@ -24,13 +24,6 @@ namespace fastmac {
 
 namespace {
 
-// The largest inconsistency that can still make an edge (as graph.cpp's max_distance).
-double edge_distance(const GraphParams &gp) {
-    if (gp.kernel == Kernel::Gaussian)
-        return gp.threshold < 1.0 ? gp.alpha * std::sqrt(-2.0 * std::log(gp.threshold)) : 0.0;
-    return gp.tau * std::sqrt(1.0 - gp.threshold);
-}
-
 // The anchors' coordinates, contiguous and in float, centred on the first anchor. The estimate works in
 // float throughout: its own sampling error is many orders above float rounding.
 struct AnchorSet {
@@ -59,7 +52,7 @@ AnchorSet make_anchors(const double *src, const double *tgt, int64_t n, const in
         A.px[r] = (float)(p[0] - A.cp[0]), A.py[r] = (float)(p[1] - A.cp[1]), A.pz[r] = (float)(p[2] - A.cp[2]);
         A.qx[r] = (float)(q[0] - A.cq[0]), A.qy[r] = (float)(q[1] - A.cq[1]), A.qz[r] = (float)(q[2] - A.cq[2]);
     }
-    A.max_d = (float)edge_distance(gp);
+    A.max_d = (float)max_distance(gp);
     A.gaussian = gp.kernel == Kernel::Gaussian;
     A.inv_2a2 = (float)(1.0 / (2.0 * gp.alpha * gp.alpha));
     A.inv_t2 = (float)(1.0 / (gp.tau * gp.tau));

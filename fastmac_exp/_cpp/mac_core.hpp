@@ -30,6 +30,7 @@ struct RegistrationFailed : std::runtime_error {
 
 Kernel parse_kernel(const std::string &name);  // throws std::invalid_argument
 void check_params(const GraphParams &gp);       // throws std::invalid_argument
+double max_distance(const GraphParams &gp);     // the largest inconsistency that can still make an edge
 
 // Threads to use: num_threads > 0 is taken as given; 0 means automatic: default_threads() (the
 // std::thread pool of parallel.hpp, or OpenMP in a -DFASTMAC_OPENMP=ON build), but one thread for
