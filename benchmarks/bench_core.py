@@ -44,7 +44,7 @@ from fastmac_exp.backends.cpp import CppBackend  # noqa: E402
 from fastmac_exp.datasets.planted import planted  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
 from fastmac_exp.params import GraphParams, MacParams  # noqa: E402
-from fastmac_exp.transforms import random_rotation, rotation_error_deg  # noqa: E402
+from fastmac_exp.transforms import rotation_error_deg  # noqa: E402
 from fastmac_exp.types import Correspondences  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
