@@ -75,9 +75,10 @@ double otsu(const std::vector<double> &cc) {
 
 // The cube root of x >= 2^-1000 to a few ulp (measured: at most 6.4e-15 relative over 25 M
 // values), ~4x faster than std::cbrt: a guess from the exponent divided by 3, then two of Halley's steps,
-// each of which cubes the relative error. Used where a graph has millions of entries (the near-cliques at
-// 50,000 and more: 25 M cube roots, ~0.24 s with std::cbrt); smaller graphs keep std::cbrt.
-constexpr int64_t kFastCbrtEdges = int64_t(1) << 20;
+// each of which cubes the relative error. Used from 2^17 entries (the 1,000 FastMAC@20 keeps of a dense
+// KITTI pair: std::cbrt was ~15 % of MAC; the near-clique of 5,000 at 200,000: 25 M cube roots, 0.24 s);
+// smaller graphs, among them every C++/Python parity test (<= 300 nodes: < 90,000 entries), keep std::cbrt.
+constexpr int64_t kFastCbrtEdges = int64_t(1) << 17;
 inline double fast_cbrt(double x) {
     uint64_t u;
     std::memcpy(&u, &x, sizeof(u));
