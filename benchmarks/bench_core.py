@@ -46,9 +46,10 @@ if str(REPO) not in sys.path:
 
 from fastmac_exp import core as cpp  # noqa: E402
 from fastmac_exp.backends.cpp import CppBackend  # noqa: E402
+from fastmac_exp.datasets.planted import planted  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
 from fastmac_exp.params import GraphParams, MacParams  # noqa: E402
-from fastmac_exp.transforms import random_rotation, rotation_error_deg  # noqa: E402
+from fastmac_exp.transforms import rotation_error_deg  # noqa: E402
 from fastmac_exp.types import Correspondences  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -69,28 +70,7 @@ PARAMS = MacParams(graph=GraphParams("gaussian", alpha=0.06, tau=0.1, threshold=
 # correspondences
 
 
-def synthetic(
-    n: int, inlier_ratio: float = 0.08, noise: float = 0.02, seed: int = 0, room: tuple = (3.0, 3.0, 2.5)
-):
-    """n correspondences in a `room` (3 x 3 x 2.5 m) around a random pose (rotation up to 60 degrees).
-
-    round(n * inlier_ratio) inliers with Gaussian noise (std `noise` per axis); the outliers' targets are
-    uniform in the moved room. Returns (Correspondences with labels, 4x4 GT).
-    """
-    rng = np.random.default_rng(seed)
-    room = np.asarray(room, float)
-    gt = np.eye(4)
-    gt[:3, :3] = random_rotation(rng, 60.0)
-    gt[:3, 3] = rng.uniform(-0.5, 0.5, 3)
-    src = rng.uniform(0, 1, (n, 3)) * room
-    tgt = src @ gt[:3, :3].T + gt[:3, 3]
-    k = int(round(n * inlier_ratio))
-    tgt[:k] += rng.normal(0, noise, (k, 3))
-    tgt[k:] = (rng.uniform(0, 1, (n - k, 3)) * room) @ gt[:3, :3].T + gt[:3, 3]
-    labels = np.zeros(n, bool)
-    labels[:k] = True
-    perm = rng.permutation(n)
-    return Correspondences(src[perm], tgt[perm], labels=labels[perm]), gt
+synthetic = planted  # the benchmark's name for it
 
 
 def real_fpfh() -> tuple[Correspondences, np.ndarray] | None:

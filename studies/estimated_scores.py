@@ -30,7 +30,8 @@ if str(REPO) not in sys.path:
 from fastmac_exp import core  # noqa: E402
 from fastmac_exp.graph.estimate import EstimateParams, choose_scores, estimate_signals  # noqa: E402
 from fastmac_exp.params import mac_params_for  # noqa: E402
-from fastmac_exp.samplers.base import draw_proportional, minmax  # noqa: E402
+from fastmac_exp.samplers.base import draw_proportional  # noqa: E402
+from fastmac_exp.samplers.graph_filter import filter_scores  # noqa: E402
 from fastmac_exp.types import Correspondences  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -107,13 +108,6 @@ def fullres_inputs(sizes=(5000, 10_000, 20_000), voxel: float = 0.015):
 
 
 # ---- one input ---------------------------------------------------------------------------------------------
-def score_of(sig, family: str) -> np.ndarray:
-    from fastmac_exp.families import family as fam
-
-    r = np.abs(sig.highpass)
-    return minmax(r) if fam(family).sampler_normalize == "minmax" else r
-
-
 def study_input(group, name, pair, corr, seeds: int, ep: EstimateParams) -> dict:
     from scipy.stats import spearmanr
 
@@ -126,7 +120,7 @@ def study_input(group, name, pair, corr, seeds: int, ep: EstimateParams) -> dict
     t0 = time.perf_counter()
     exact = core.graph_signals(corr.src, corr.tgt, gp)
     t_exact = (time.perf_counter() - t0) * 1e3
-    p_exact = score_of(exact, pair.family)
+    p_exact = filter_scores(exact, "highpass", pair.family)
     auto, _ = choose_scores(corr.src, corr.tgt, gp, ep, np.random.default_rng(0))
     backend = CppBackend()
     rec = {"group": group, "name": name, "family": pair.family, "n": n,
@@ -140,7 +134,7 @@ def study_input(group, name, pair, corr, seeds: int, ep: EstimateParams) -> dict
         est = estimate_signals(corr.src, corr.tgt, gp, np.random.default_rng([seed, 1]), ep)
         rec["t_estimate_ms"].append((time.perf_counter() - t0) * 1e3)
         rec["anchors"].append(est.anchors)
-        p_est = score_of(est, pair.family)
+        p_est = filter_scores(est, "highpass", pair.family)
         rec["spearman"].append(float(spearmanr(p_est, p_exact)[0]))
         for r in RATIOS:
             k = max(3, int(np.floor(n * r + 1e-9)))

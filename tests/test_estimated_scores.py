@@ -116,21 +116,9 @@ def test_pair_budget_takes_a_prefix_of_the_draws():
 
 def outdoor(n: int, inliers: float, seed: int = 1):
     """bench_core's outdoor-like scene: a 60 x 60 x 4 m box, 0.1 m noise, KITTI's FPFH kernel."""
-    from fastmac_exp.transforms import random_rotation
-    from fastmac_exp.types import Correspondences
+    from fastmac_exp.datasets.planted import OUTDOOR_ROOM, planted
 
-    rng = np.random.default_rng(seed)
-    room = np.array([60.0, 60.0, 4.0])
-    R = random_rotation(rng, 60.0)
-    t = rng.uniform(-0.5, 0.5, 3)
-    src = rng.uniform(0, 1, (n, 3)) * room
-    tgt = src @ R.T + t
-    k = int(round(n * inliers))
-    tgt[:k] += rng.normal(0, 0.1, (k, 3))
-    tgt[k:] = (rng.uniform(0, 1, (n - k, 3)) * room) @ R.T + t
-    labels = np.zeros(n, bool)
-    labels[:k] = True
-    return Correspondences(src, tgt, labels=labels)
+    return planted(n, inlier_ratio=inliers, noise=0.1, seed=seed, room=OUTDOOR_ROOM)[0]
 
 
 def kept_inlier_ratio(sampler, corr, gp, seeds, ratio=0.05, family="kitti"):

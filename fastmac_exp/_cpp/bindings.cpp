@@ -484,6 +484,8 @@ NB_MODULE(_mac_core, m) {
         }
     });
 
+    m.def("bf16_cores", &fastmac::bf16_cores,
+          "Whether MAC's dense cores of >= 512 nodes run in bfloat16 here (the build and the CPU have AVX512_BF16).");
     m.def("graph_edges", &graph_edges, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
           "num_threads"_a = 0,
           "Upper-triangle edges (i < j) of W with their weights w and second-order weights g = G_ij.");

@@ -28,7 +28,17 @@ struct Kernels {
     Tile<float> f;
 };
 
+// The bfloat16 tile: c[t * ldc + u] += sum_{r < kc2} sum_{h < 2} a_h[r * MR + t] * b_h[r * NR + u], where
+// each uint32_t of a and b holds two bfloat16 values, rows 2r (low half, h = 0) and 2r + 1 (high half) of
+// D: the packed micro-panels of the float tile with pairs of rows in place of rows.
+using TileBf16Fn = void (*)(const uint32_t *a, const uint32_t *b, int64_t kc2, float *c, int64_t ldc);
+struct TileBf16 {
+    TileBf16Fn fn = nullptr;  // nullptr: not built (the compiler lacks AVX512_BF16)
+    int64_t mr = 0, nr = 0;
+};
+
 Kernels avx512_kernels();  // dense_tiles_avx512.cpp (x86-64 builds only)
+TileBf16 bf16_tile();      // dense_tiles_bf16.cpp (x86-64 builds whose compiler has -mavx512bf16)
 Kernels avx2_kernels();    // dense_tiles_avx2.cpp
 
 // The tile with MR x NV accumulators of O::L lanes: O provides the vector type V, L and zero / load /

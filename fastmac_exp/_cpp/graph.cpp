@@ -46,19 +46,18 @@ int resolve_threads(int num_threads, int64_t n) {
     return default_threads();
 }
 
+double max_distance(const GraphParams &gp) {
+    if (gp.kernel == Kernel::Gaussian)
+        return gp.threshold < 1.0 ? gp.alpha * std::sqrt(-2.0 * std::log(gp.threshold)) : 0.0;
+    return gp.tau * std::sqrt(1.0 - gp.threshold);
+}
+
 namespace {
 
 // The kernel exactly as the Python reference evaluates it (fastmac_exp/graph.py::kernel).
 inline double kernel_value(double d, const GraphParams &gp) {
     if (gp.kernel == Kernel::Gaussian) return std::exp(-(d * d) / (2.0 * (gp.alpha * gp.alpha)));
     return 1.0 - (d * d) / (gp.tau * gp.tau);
-}
-
-// The largest inconsistency that can still make an edge.
-double max_distance(const GraphParams &gp) {
-    if (gp.kernel == Kernel::Gaussian)
-        return gp.threshold < 1.0 ? gp.alpha * std::sqrt(-2.0 * std::log(gp.threshold)) : 0.0;
-    return gp.tau * std::sqrt(1.0 - gp.threshold);
 }
 
 // Float32 copies of the coordinates, centred per cloud, for screening pairs before the exact test.

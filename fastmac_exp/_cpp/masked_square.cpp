@@ -111,6 +111,18 @@ tiles::Tile<T> pick_tile() {
     else return k.f;
 }
 
+// The bfloat16 tile where the build and the CPU have AVX512_BF16 (fn nullptr otherwise, and with
+// FASTMAC_GEMM set to another kernel).
+tiles::TileBf16 pick_bf16_tile() {
+#ifdef FASTMAC_BF16_TILES
+    const char *env = std::getenv("FASTMAC_GEMM");
+    if ((!env || std::string(env) == "avx512") && __builtin_cpu_supports("avx512f") &&
+        __builtin_cpu_supports("avx512bf16"))
+        return tiles::bf16_tile();
+#endif
+    return {};
+}
+
 
 struct Core {
     int64_t m = 0;
@@ -162,58 +174,18 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
     return core;
 }
 
-// P (m x ld, the tiles that hold entries a < b) = sum over all k of V_ka V_kb for core nodes a, b, in T
-// arithmetic. ld: the row stride of P, a multiple of the tile's columns (tile.nr).
-template <class T>
-Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
-                             const tiles::Tile<T> &tile, int64_t ld, int nthreads, InterruptibleRegion &ctrl_c) {
-    const int64_t m = core.m, nk = (int64_t)core.rows.size();
-    const int64_t mr = tile.mr, nr = tile.nr;
-    const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
-    // D = V[K, C] packed twice: A[ip][r][t] = D[r][ip * mr + t] (the broadcast operand) and
-    // B[jp][r][u] = D[r][jp * nr + u] (the vector operand); calloc's zeros pad the last panels.
-    Array<T> A = Array<T>::zeroed((size_t)n_ip * nk * mr), B = Array<T>::zeroed((size_t)n_jp * nk * nr),
-             P = Array<T>::zeroed((size_t)n_ip * mr * ld);
-    std::vector<uint8_t> in_rows(V.n, 0);
-    for (int32_t k : core.rows) in_rows[k] = 1;
-    // A chunk of rows at a time: scattered into a dense block (rows of ld entries, cache-local writes),
-    // then copied panel by panel (contiguous runs of mr or nr entries).
-    constexpr int64_t kChunk = 32;
-    DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
-    parallel_region(nthreads, [&](int) {
-        std::vector<T> dense((size_t)kChunk * ld, T(0));
-        int64_t lo, hi;
-        while (chunks.next(lo, hi)) {
-            const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
-            for (int64_t r = r0; r < r1; ++r) {
-                const int32_t k = core.rows[r];
-                T *dr = dense.data() + (r - r0) * ld;
-                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
-                    const int64_t c = core.pos[V.col[p]];
-                    if (c >= 0) dr[c] = (T)vals[p];
-                }
-            }
-            for (int64_t ip = 0; ip < n_ip; ++ip) {
-                const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
-                T *dst = A.data() + ((size_t)ip * nk + r0) * mr;
-                for (int64_t r = r0; r < r1; ++r, dst += mr)
-                    std::memcpy(dst, dense.data() + (r - r0) * ld + c0, (size_t)w * sizeof(T));
-            }
-            for (int64_t jp = 0; jp < n_jp; ++jp) {
-                T *dst = B.data() + ((size_t)jp * nk + r0) * nr;
-                for (int64_t r = r0; r < r1; ++r, dst += nr)
-                    std::memcpy(dst, dense.data() + (r - r0) * ld + jp * nr, (size_t)nr * sizeof(T));
-            }
-            std::fill(dense.begin(), dense.end(), T(0));
-        }
-    });
-    // Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
-    // L2 while a thread runs over its row panels of P; for each row panel the A micro-panel (kc x mr) stays
-    // in L1 across the block's column panels. Threads take groups of consecutive row panels of about equal
-    // work, in one parallel region, and run each group in the blocked order; a group owns its rows of P,
-    // and every tile sums its blocks of rows in the same order, so P is the same for any thread count.
+// Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
+// L2 while a thread runs over its row panels of P; for each row panel the A micro-panel (kc x mr) stays
+// in L1 across the block's column panels. Threads take groups of consecutive row panels of about equal
+// work, in one parallel region, and run each group in the blocked order; a group owns its rows of P,
+// and every tile sums its blocks of rows in the same order, so P is the same for any thread count.
+// TA: a packed element (a value, or a pair of bfloat16 rows); nk: the packed rows (elements per column).
+template <class TA, class TC, class Fn>
+void blocked_product(const TA *A, const TA *B, int64_t nk, int64_t m, int64_t mr, int64_t nr, int64_t ld, Fn fn,
+                     TC *P, int nthreads, InterruptibleRegion &ctrl_c) {
+    const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;
     const int64_t kc_max = std::min<int64_t>(nk, 256);
-    const int64_t nc_panels = std::max<int64_t>(1, kL2Bytes / (kc_max * nr * (int64_t)sizeof(T)));
+    const int64_t nc_panels = std::max<int64_t>(1, kL2Bytes / (kc_max * nr * (int64_t)sizeof(TA)));
     auto panel_work = [&](int64_t ip) { return n_jp - (ip * mr) / nr; };  // column panels right of the diagonal
     int64_t total_work = 0;
     for (int64_t ip = 0; ip < n_ip; ++ip) total_work += panel_work(ip);
@@ -237,16 +209,24 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
                     const int64_t kc = std::min(kc_max, nk - k0);
                     for (int64_t ip = ip0; ip < ip1; ++ip) {
                         const int64_t i0 = ip * mr;
-                        const T *ap = A.data() + ((size_t)ip * nk + k0) * mr;
+                        const TA *ap = A + ((size_t)ip * nk + k0) * mr;
                         for (int64_t jp = std::max(jc, i0 / nr); jp < jc_end; ++jp)
-                            tile.fn(ap, B.data() + ((size_t)jp * nk + k0) * nr, kc,
-                                    P.data() + (size_t)i0 * ld + jp * nr, ld);
+                            fn(ap, B + ((size_t)jp * nk + k0) * nr, kc, P + (size_t)i0 * ld + jp * nr, ld);
                     }
                 }
             }
         }
     });
-    // The nodes outside K: each pair of their core neighbours, a < b (a thread owns a range of rows a).
+}
+
+// P_ab += V_ka V_kb for the nodes k outside K: each pair of their core neighbours, a < b (a thread owns a
+// range of rows a).
+template <class T>
+void add_outside_rows(const Csr &V, const std::vector<double> &vals, const Core &core, T *P, int64_t ld,
+                      int nthreads, InterruptibleRegion &ctrl_c) {
+    const int64_t m = core.m;
+    std::vector<uint8_t> in_rows(V.n, 0);
+    for (int32_t k : core.rows) in_rows[k] = 1;
     std::vector<int64_t> nb_ptr{0};
     std::vector<int32_t> nb_a;
     std::vector<T> nb_v;
@@ -282,13 +262,123 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
                     const int32_t *q = std::lower_bound(na, ne, a0);
                     for (; q < ne && *q < a1; ++q) {
                         const T x = nv[q - na];
-                        T *pr = P.data() + (int64_t)*q * ld;
+                        T *pr = P + (int64_t)*q * ld;
                         for (const int32_t *u = q + 1; u < ne; ++u) pr[*u] += x * nv[u - na];
                     }
                 }
             }
         });
     }
+}
+
+// P (m x ld, the tiles that hold entries a < b) = sum over all k of V_ka V_kb for core nodes a, b, in T
+// arithmetic. ld: the row stride of P, a multiple of the tile's columns (tile.nr).
+template <class T>
+Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core &core,
+                             const tiles::Tile<T> &tile, int64_t ld, int nthreads, InterruptibleRegion &ctrl_c) {
+    const int64_t m = core.m, nk = (int64_t)core.rows.size();
+    const int64_t mr = tile.mr, nr = tile.nr;
+    const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
+    // D = V[K, C] packed twice: A[ip][r][t] = D[r][ip * mr + t] (the broadcast operand) and
+    // B[jp][r][u] = D[r][jp * nr + u] (the vector operand); calloc's zeros pad the last panels.
+    Array<T> A = Array<T>::zeroed((size_t)n_ip * nk * mr), B = Array<T>::zeroed((size_t)n_jp * nk * nr),
+             P = Array<T>::zeroed((size_t)n_ip * mr * ld);
+    // A chunk of rows at a time: scattered into a dense block (rows of ld entries, cache-local writes),
+    // then copied panel by panel (contiguous runs of mr or nr entries).
+    constexpr int64_t kChunk = 32;
+    DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
+    parallel_region(nthreads, [&](int) {
+        std::vector<T> dense((size_t)kChunk * ld, T(0));
+        int64_t lo, hi;
+        while (chunks.next(lo, hi)) {
+            const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
+            for (int64_t r = r0; r < r1; ++r) {
+                const int32_t k = core.rows[r];
+                T *dr = dense.data() + (r - r0) * ld;
+                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
+                    const int64_t c = core.pos[V.col[p]];
+                    if (c >= 0) dr[c] = (T)vals[p];
+                }
+            }
+            for (int64_t ip = 0; ip < n_ip; ++ip) {
+                const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
+                T *dst = A.data() + ((size_t)ip * nk + r0) * mr;
+                for (int64_t r = r0; r < r1; ++r, dst += mr)
+                    std::memcpy(dst, dense.data() + (r - r0) * ld + c0, (size_t)w * sizeof(T));
+            }
+            for (int64_t jp = 0; jp < n_jp; ++jp) {
+                T *dst = B.data() + ((size_t)jp * nk + r0) * nr;
+                for (int64_t r = r0; r < r1; ++r, dst += nr)
+                    std::memcpy(dst, dense.data() + (r - r0) * ld + jp * nr, (size_t)nr * sizeof(T));
+            }
+            std::fill(dense.begin(), dense.end(), T(0));
+        }
+    });
+    blocked_product(A.data(), B.data(), nk, m, mr, nr, ld, tile.fn, P.data(), nthreads, ctrl_c);
+    add_outside_rows(V, vals, core, P.data(), ld, nthreads, ctrl_c);
+    return P;
+}
+
+// Round to bfloat16 stochastically: add 16 random bits below the kept ones and truncate, so that the
+// rounding is unbiased (E[bf16(x)] = x) and the errors of a sum of many products average out. Rounding to
+// nearest is biased on a core's weights, which crowd just below 1 (a relative error of ~4e-4 in every
+// core entry of G, the same sign throughout; ~3e-5 with this). The bits are a hash of (row k, core
+// column c, one multiply), so the result depends neither on the thread count nor on the run. Finite, non-negative x.
+inline uint16_t to_bf16(float x, uint64_t key) {
+    uint32_t u;
+    std::memcpy(&u, &x, sizeof(u));
+    const uint64_t h = (key + 1) * 0x9E3779B97F4A7C15ull;  // the top 16 bits of a Weyl sequence
+    return (uint16_t)(((uint64_t)u + (h >> 48)) >> 16);   // no carry into the sign: x < 2^127
+}
+
+// core_products in bfloat16 with float32 sums: D rounded to bfloat16 (stochastically), packed in pairs of rows (rows 2r
+// and 2r + 1 of D in one uint32_t, a zero row padding an odd count), the products summed in float32 by
+// the bfloat16 tile; the nodes outside K add in float32 as in core_products<float>.
+Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, const Core &core,
+                                const tiles::TileBf16 &tile, int64_t ld, int nthreads, InterruptibleRegion &ctrl_c) {
+    const int64_t m = core.m, nk = (int64_t)core.rows.size(), nk2 = (nk + 1) / 2;
+    const int64_t mr = tile.mr, nr = tile.nr;
+    const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;
+    Array<uint32_t> A = Array<uint32_t>::zeroed((size_t)n_ip * nk2 * mr),
+                    B = Array<uint32_t>::zeroed((size_t)n_jp * nk2 * nr);
+    Array<float> P = Array<float>::zeroed((size_t)n_ip * mr * ld);
+    uint16_t *A16 = reinterpret_cast<uint16_t *>(A.data()), *B16 = reinterpret_cast<uint16_t *>(B.data());
+    constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows
+    DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
+    parallel_region(nthreads, [&](int) {
+        std::vector<float> dense((size_t)kChunk * ld, 0.0f);
+        std::vector<uint16_t> row16(ld);
+        int64_t lo, hi;
+        while (chunks.next(lo, hi)) {
+            const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
+            for (int64_t r = r0; r < r1; ++r) {
+                const int32_t k = core.rows[r];
+                float *dr = dense.data() + (r - r0) * ld;
+                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
+                    const int64_t c = core.pos[V.col[p]];
+                    if (c >= 0) dr[c] = (float)vals[p];
+                }
+            }
+            for (int64_t r = r0; r < r1; ++r) {
+                const float *dr = dense.data() + (r - r0) * ld;
+                const int64_t half = r & 1, r2 = r / 2;
+                // one rounding of each entry of D, used in both packings
+                for (int64_t c = 0; c < ld; ++c) row16[c] = dr[c] != 0.0f ? to_bf16(dr[c], (uint64_t)r * ld + c) : 0;
+                for (int64_t ip = 0; ip < n_ip; ++ip) {
+                    const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
+                    uint16_t *dst = A16 + (((size_t)ip * nk2 + r2) * mr) * 2 + half;
+                    for (int64_t t = 0; t < w; ++t) dst[2 * t] = row16[c0 + t];
+                }
+                for (int64_t jp = 0; jp < n_jp; ++jp) {
+                    uint16_t *dst = B16 + (((size_t)jp * nk2 + r2) * nr) * 2 + half;
+                    for (int64_t u = 0; u < nr; ++u) dst[2 * u] = row16[jp * nr + u];
+                }
+            }
+            std::fill(dense.begin(), dense.end(), 0.0f);
+        }
+    });
+    blocked_product(A.data(), B.data(), nk2, m, mr, nr, ld, tile.fn, P.data(), nthreads, ctrl_c);
+    add_outside_rows(V, vals, core, P.data(), ld, nthreads, ctrl_c);
     return P;
 }
 
@@ -626,12 +716,20 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     const bool single = precision == Precision::Single ||
                         (precision == Precision::Mac && core.m >= kSingleCore &&
                          !env_is("FASTMAC_MAC_PRECISION", "double"));
-    // P in double, or in float (see Precision)
+    const tiles::TileBf16 tile16 = precision == Precision::Mac && core.m >= kHalfCore &&
+                                           !env_is("FASTMAC_MAC_PRECISION", "double") &&
+                                           !env_is("FASTMAC_MAC_PRECISION", "single")
+                                       ? pick_bf16_tile()
+                                       : tiles::TileBf16{};
+    // P in double, or in float (see Precision), from float or bfloat16 operands
     Array<double> Pd;
     Array<float> Pf;
     int64_t ld = 0;
     if (core.m > 0) {
-        if (single) {
+        if (tile16.fn) {
+            ld = (core.m + tile16.nr - 1) / tile16.nr * tile16.nr;
+            Pf = core_products_bf16(V, vals, core, tile16, ld, nthreads, ctrl_c);
+        } else if (single) {
             const tiles::Tile<float> tile = pick_tile<float>();
             ld = (core.m + tile.nr - 1) / tile.nr * tile.nr;
             Pf = core_products<float>(V, vals, core, tile, ld, nthreads, ctrl_c);
@@ -727,6 +825,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     mirror_entries(V, S, done);
     return S;
 }
+
+bool bf16_cores() { return pick_bf16_tile().fn != nullptr; }
 
 std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size, Precision precision) {
     return masked_square(W, W.w, nthreads, core_size, precision);

@@ -117,16 +117,17 @@ class Sampler:
         self, corr: Correspondences, k: int, gp: GraphParams, family: str, rng: np.random.Generator
     ) -> SampleResult:
         t0 = time.perf_counter()
-        scores = self.scores(corr, gp, family, rng)
+        scores, info = self.scored(corr, gp, family, rng)
         t1 = time.perf_counter()
         idx, zero_filled = draw_proportional(scores, k, rng)
         timings = {"sampling_prep": (t1 - t0) * 1e3, "sampling_draw": (time.perf_counter() - t1) * 1e3}
-        return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled, timings=timings,
-                            **self.score_info())  # fmt: skip
+        return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled, timings=timings, **info)
 
-    def score_info(self) -> dict:
-        """What the last `scores` call used (graph filters: exact or estimated scores)."""
-        return {}
+    def scored(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> tuple[np.ndarray, dict]:
+        """The scores and what made them (SampleResult fields: graph filters say exact or estimated)."""
+        return self.scores(corr, gp, family, rng), {}
 
     def scores(
         self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator

@@ -28,6 +28,18 @@ def filter_response(sig: GraphSignals, filt: str) -> np.ndarray:
     raise InputError(f"unknown graph filter {filt!r}; expected one of {FILTERS}")
 
 
+def filter_scores(
+    sig: GraphSignals, filt: str, family: str, squared: bool = False, normalize: str = "auto"
+) -> np.ndarray:
+    """The sampling scores of a graph filter: |response| (squared if asked), min-max normalised where
+    `normalize` (or, for "auto", the family) says so."""
+    r = filter_response(sig, filt)
+    if squared:
+        r = r**2
+    norm = family_record(family).sampler_normalize if normalize == "auto" else normalize
+    return minmax(r) if norm == "minmax" else r
+
+
 class GraphFilterSampler(Sampler):
     """FastMAC: score = |filter response of the generalized degree|, drawn stochastically.
 
@@ -67,7 +79,6 @@ class GraphFilterSampler(Sampler):
             except TypeError as exc:
                 raise InputError(f"sampler.estimate: {exc}") from None
         self.score_mode = scores
-        self._used: dict = {}
         self.filter = filter
         self.name = filter + ("_squared" if squared else "")
         self.normalize = normalize
@@ -79,17 +90,19 @@ class GraphFilterSampler(Sampler):
     def scores(
         self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
     ) -> np.ndarray:
-        sig = self.signals(corr, gp, rng)
-        r = filter_response(sig, self.filter)
-        if self.squared:
-            r = r**2
-        norm = self.normalize
-        if norm == "auto":
-            norm = family_record(family).sampler_normalize
-        return minmax(r) if norm == "minmax" else r
+        return self.scored(corr, gp, family, rng)[0]
 
-    def signals(self, corr: Correspondences, gp: GraphParams, rng: np.random.Generator) -> GraphSignals:
-        """Exact or estimated signals, as `scores` says; records which (score_info)."""
+    def scored(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> tuple[np.ndarray, dict]:
+        sig, mode = self.signals(corr, gp, rng)
+        scores = filter_scores(sig, self.filter, family, self.squared, self.normalize)
+        return scores, {"scores_used": mode, "anchors": sig.anchors}
+
+    def signals(
+        self, corr: Correspondences, gp: GraphParams, rng: np.random.Generator
+    ) -> tuple[GraphSignals, str]:
+        """Exact or estimated signals, as `scores` says, and which ("exact" or "estimate")."""
         mode = self.score_mode
         if mode == "estimate" and not (self.self_loops and self.impl in ("auto", "cpp")):
             raise InputError(
@@ -108,8 +121,4 @@ class GraphFilterSampler(Sampler):
             sig = compute_signals(corr.src, corr.tgt, gp, self.self_loops, self.impl, self.device)
         else:
             sig = estimate_signals(corr.src, corr.tgt, gp, est_rng, self.estimate, pilot_result=p)
-        self._used = {"scores_used": mode, "anchors": sig.anchors}
-        return sig
-
-    def score_info(self) -> dict:
-        return dict(self._used)
+        return sig, mode

@@ -25,8 +25,9 @@ per-pair scalars sit on the sequence timeline `pair` (the pair's index).
     pairs/<pair>/registration/estimate    Transform3D + TransformAxes3D  estimated pose, with
                                                      .../estimate/source the source under it
     pairs/<pair>/registration/gt          Transform3D + TransformAxes3D  GT pose, with .../gt/source
-    pairs/<pair>/stage_ms                 BarChart   the pair's own stage times without describe, in
-                                                     STAGE_BARS order
+    pairs/<pair>/stage_ms                 TextDocument  the pair's own stage times without describe, in
+                                                     STAGE_BARS order, each named, with a bar (rerun's
+                                                     BarChart has no category labels)
     pairs/<pair>/info                     TextDocument  the results row
     metrics/time_ms/<stage>               Scalars    sampling .. pose and total (MAC + sampling), ms
     metrics/describe_ms                   Scalars    features + matching, ms (own plot: it dwarfs the rest)
@@ -293,11 +294,7 @@ class RerunTracker(Tracker):
                 ),
                 rrb.Vertical(
                     rrb.TextDocumentView(origin="legend", name="legend"),
-                    rrb.BarChartView(
-                        origin=f"{root}/stage_ms",
-                        name="ms: " + ", ".join(STAGE_BARS),
-                        plot_legend=rrb.PlotLegend(visible=False),
-                    ),
+                    rrb.TextDocumentView(origin=f"{root}/stage_ms", name="stage ms"),
                     rrb.TextDocumentView(origin=f"{root}/info", name="row"),
                     row_shares=[3, 1, 2],
                 ),
@@ -460,9 +457,9 @@ class RerunTracker(Tracker):
             )
             static(f"registration/{entity}/source", rr.Points3D(src_pts, class_ids=style.id, radii=r))
 
-        bars = [_finite(outcome.row.get(f"t_{s}_ms")) for s in STAGE_BARS]
-        if any(b is not None for b in bars):
-            static("stage_ms", rr.BarChart([b or 0.0 for b in bars], color=ESTIMATE.color))
+        bars = {s: _finite(outcome.row.get(f"t_{s}_ms")) for s in STAGE_BARS}
+        if any(b is not None for b in bars.values()):
+            static("stage_ms", rr.TextDocument(_stage_markdown(bars), media_type="text/markdown"))
         static("info", rr.TextDocument(_row_markdown(outcome.row, offset, shown), media_type="text/markdown"))
 
     def finish(self, table: pd.DataFrame, summary: dict[str, Any]) -> None:
@@ -527,6 +524,19 @@ def _eye(centre: np.ndarray, extent: float, up: str | None, side: bool = False) 
 
 HEADLINE = ("success", "re_deg", "te_cm", "n_in", "n_kept", "inlier_ratio_in", "inlier_ratio_kept",
             "clique_size", "clique_inliers", "error")  # fmt: skip
+
+
+def _stage_markdown(ms: dict[str, float | None], width: int = 24) -> str:
+    """The stage times as a labelled bar list: `stage  ms  bar`, the longest stage `width` blocks."""
+    top = max((v for v in ms.values() if v is not None), default=0.0)
+    lines = ["| stage | ms | |", "| --- | ---: | --- |"]
+    for stage, v in ms.items():
+        if v is None:
+            lines.append(f"| {stage} | - | |")
+            continue
+        n = int(round(width * v / top)) if top > 0 else 0
+        lines.append(f"| {stage} | {v:.1f} | {'█' * n} |")
+    return "\n".join(lines)
 
 
 def _row_markdown(
