@@ -114,15 +114,13 @@ std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size 
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads,
                                   int64_t *core_size = nullptr, Precision precision = Precision::Mac);
 
-<<<<<<< HEAD
-// The same for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
+// Whether this build and CPU run MAC's cores of >= kHalfCore nodes in bfloat16 (FASTMAC_GEMM permitting).
+bool bf16_cores();
+
+// masked_square for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
 // bitset rows (column blocks of at most ~32 MB of bitsets; AVX-512 VPOPCNTDQ where the CPU has it).
 // upper_only: only the entries j > i are filled (the others are 0).
 std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only = false);
-=======
-// Whether this build and CPU run MAC's cores of >= kHalfCore nodes in bfloat16 (FASTMAC_GEMM permitting).
-bool bf16_cores();
->>>>>>> main
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
