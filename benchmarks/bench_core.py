@@ -781,7 +781,11 @@ def main(argv: list[str] | None = None) -> int:
     outdoor = [] if args.no_outdoor else bench_outdoor(args)
     turbo = [] if args.no_turboreg else bench_turboreg(args)
     if args.json:
-        data = {"indoor": [r.__dict__ for r in rows], "outdoor": [r.__dict__ for r in outdoor], "turboreg": turbo}
+        data = {
+            "indoor": [r.__dict__ for r in rows],
+            "outdoor": [r.__dict__ for r in outdoor],
+            "turboreg": turbo,
+        }
         args.json.write_text(json.dumps(data, indent=1, default=float))
         print(f"rows written to {args.json}")
     return 0
@@ -833,9 +837,11 @@ from fastmac_exp.backends.turboreg import TurboRegBackend
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.types import Correspondences
 def hwm():
-    return next(int(x.split()[1]) / 1024 for x in Path("/proc/self/status").read_text().splitlines() if x.startswith("VmHWM:"))
+    lines = Path("/proc/self/status").read_text().splitlines()
+    return next(int(x.split()[1]) / 1024 for x in lines if x.startswith("VmHWM:"))
 z = np.load(sys.argv[1], allow_pickle=True)
-corr, params, backend = Correspondences(z["src"], z["tgt"]), mac_params_for(str(z["family"]), "fpfh"), TurboRegBackend()
+corr, params = Correspondences(z["src"], z["tgt"]), mac_params_for(str(z["family"]), "fpfh")
+backend = TurboRegBackend()
 base = hwm()
 backend.register(corr, params)
 print(hwm(), hwm() - base)
@@ -847,7 +853,8 @@ def turbo_memory(npz: Path) -> tuple[float, float]:
     process (in this one, memory freed by earlier runs stays mapped: keep_freed_memory)."""
     import subprocess
 
-    out = subprocess.run([sys.executable, "-c", TURBO_MEMORY, str(npz)], capture_output=True, text=True, cwd=REPO)
+    cmd = [sys.executable, "-c", TURBO_MEMORY, str(npz)]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     try:
         peak, growth = (float(v) for v in out.stdout.split()[-2:])
         return peak, growth
@@ -863,10 +870,12 @@ def bench_turboreg(args) -> list[dict]:
 
     reps = args.reps or 3
     threads = cpp.core().default_threads()
-    print(f"\nTurboReg (backend=turboreg) beside MAC and FastMAC@20, end to end, medians of {reps} interleaved "
-          f"rounds, {threads} thread(s); ms (success), TurboReg's stages and its peak RSS growth")  # fmt: skip
+    print(f"\nTurboReg (backend=turboreg) beside MAC and FastMAC@20, end to end, medians of {reps} "
+          f"interleaved rounds, {threads} thread(s); ms (success), TurboReg's stages and its peak RSS "
+          "growth")  # fmt: skip
     print(f"  {'pair':38s} {'N':>5s} | {'TurboReg':>12s} {'MAC':>12s} {'FastMAC20':>12s} {'F20+TR':>12s} | "
-          f"{'MAC/TR':>6s} | TR graph/pivots/hyp/pose ms | TR MB (fresh process; 50k: in process)")  # fmt: skip
+          f"{'MAC/TR':>6s} | TR graph/pivots/hyp/pose ms | TR MB (fresh process; 50k: in this "
+          "one)")  # fmt: skip
     rows = []
     inputs = [(name, fam, corr, gt, "family") for name, fam, corr, gt in turbo_inputs()]
     if not args.quick:
@@ -903,7 +912,8 @@ def bench_turboreg(args) -> list[dict]:
     outdoor = [r["ms"]["turboreg"] for r in rows if r["family"] == "kitti"]
     mbs = [r["turboreg_mb"] for r in rows if r["n"] <= 10_000]
     if indoor:
-        print(f"  targets: TurboReg indoor max {max(indoor):.1f} ms (< 20), outdoor max {max(outdoor or [0]):.1f} ms "
+        print(f"  targets: TurboReg indoor max {max(indoor):.1f} ms (< 20), outdoor max "
+              f"{max(outdoor or [0]):.1f} ms "
               f"(< 40), peak RSS growth max {max(mbs):.0f} MB (< 200)")  # fmt: skip
     for r in rows:
         if r["n"] > 10_000:

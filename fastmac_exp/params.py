@@ -143,8 +143,12 @@ def mac_params_for(
             f"unknown graph parameter(s) {sorted(unknown)}; known: kernel, alpha, tau, threshold"
         )
     graph = replace(graph, **g)
-    base = MacParams(graph=graph, inlier_threshold=fam.inlier_threshold, min_clique_size=fam.min_clique_size,
-                     family=fam.name)
+    base = MacParams(
+        graph=graph,
+        inlier_threshold=fam.inlier_threshold,
+        min_clique_size=fam.min_clique_size,
+        family=fam.name,
+    )
     m = {k: v for k, v in (mac_overrides or {}).items() if v is not None}
     known = {
         "inlier_threshold",

@@ -12,11 +12,20 @@ import pandas as pd
 from fastmac_exp.report import markdown_table
 from studies.common import DATA, PAPER_SOTA, SHORT, Page, data_heading, fnum, ms, text
 
-METHOD_ORDER = ("mac", "fastmac50", "fastmac20", "ransac1k", "ransac10k", "fgr", "kiss_matcher", "turboreg",
-                "fastmac20_turboreg")
+METHOD_ORDER = (
+    "mac",
+    "fastmac50",
+    "fastmac20",
+    "ransac1k",
+    "ransac10k",
+    "fgr",
+    "kiss_matcher",
+    "turboreg",
+    "fastmac20_turboreg",
+)
 METHOD_NAMES = {"mac": "MAC", "fastmac50": "FastMAC@50", "fastmac20": "FastMAC@20", "ransac1k": "RANSAC 1k",
-                "ransac10k": "RANSAC 10k", "fgr": "FGR", "kiss_matcher": "KISS-Matcher", "turboreg": "TurboReg",
-                "fastmac20_turboreg": "FastMAC@20 + TurboReg"}  # fmt: skip
+                "ransac10k": "RANSAC 10k", "fgr": "FGR", "kiss_matcher": "KISS-Matcher",
+                "turboreg": "TurboReg", "fastmac20_turboreg": "FastMAC@20 + TurboReg"}  # fmt: skip
 
 
 def method_of(t: pd.DataFrame) -> pd.Series:

@@ -86,8 +86,8 @@ def kabsch_np(a, b, w=None):
 def test_cliques_and_pose_match_a_dense_torch_oracle():
     corr, gt = make_correspondences(n=700, inlier_ratio=0.15, noise=0.003, seed=3)
     kw = dict(INDOOR, num_pivot=300)
-    cliques, up, c = upstream_dense(corr.src, corr.tgt, kw["max_n"], kw["tau"], kw["num_pivot"], kw["radius_nms"],
-                                    kw["tau_inlier"])  # fmt: skip
+    cliques, up, c = upstream_dense(corr.src, corr.tgt, kw["max_n"], kw["tau"], kw["num_pivot"],
+                                    kw["radius_nms"], kw["tau_inlier"])  # fmt: skip
     g = core.core().length_graph_edges(corr.src, corr.tgt, kw["tau"], kw["radius_nms"])
     iu = np.nonzero(np.triu(c, 1))
     assert len(g["i"]) == len(iu[0]) and (g["i"] == iu[0]).all() and (g["j"] == iu[1]).all()
@@ -122,7 +122,8 @@ def test_cliques_and_pose_match_a_dense_torch_oracle():
 def test_topk_tie_order_is_torchs():
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(0)
-    for dim, k, density in ((200_000, 2000, 0.05), (1000, 50, 0.3), (5000, 2, 0.01), (100, 2, 0.2), (300, 30, 1.0)):
+    cases = ((200_000, 2000, 0.05), (1000, 50, 0.3), (5000, 2, 0.01), (100, 2, 0.2), (300, 30, 1.0))
+    for dim, k, density in cases:
         v = np.zeros(dim, np.float32)
         pos = np.sort(rng.choice(dim, int(dim * density), replace=False))
         v[pos] = rng.integers(1, 6, len(pos))  # many ties

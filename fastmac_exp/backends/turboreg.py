@@ -53,7 +53,8 @@ class TurboRegBackend:
             raise InputError(f"turboreg metric must be one of {', '.join(METRICS)}, got {metric!r}")
         for key, v in (("tau", tau), ("radius_nms", radius_nms), ("tau_inlier", tau_inlier)):
             if v is not None and not (v >= 0 if key == "radius_nms" else v > 0):
-                raise InputError(f"turboreg {key} must be {'>= 0' if key == 'radius_nms' else 'positive'}, got {v}")
+                want = ">= 0" if key == "radius_nms" else "positive"
+                raise InputError(f"turboreg {key} must be {want}, got {v}")
         if num_pivot is not None and num_pivot < 1:
             raise InputError(f"turboreg num_pivot must be >= 1, got {num_pivot}")
         self._core = core.core()
