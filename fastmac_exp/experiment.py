@@ -374,6 +374,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
     s = summary
     nan = float("nan")
+    cliques_ms = s.get("median_cliques_ms")
+    if "median_pivots_ms" in s and (cliques_ms is None or cliques_ms != cliques_ms):
+        # backend=turboreg's stages (its rows have no MAC cliques / selection: NaN)
+        stages = ("describe", "sampling", "graph", "pivots", "hypotheses", "pose", "total")
     scored, unscored = s.get("scored", s.get("pairs")), s.get("unscored", 0)
     if scored:
         rr = f"RR: {100 * s.get('RR', nan):.1f}%" + (f" (of the {scored} pairs with GT)" if unscored else "")

@@ -30,6 +30,7 @@ def pose_errors(pose: np.ndarray, gt: np.ndarray, re_max_deg: float, te_max_m: f
 
 STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
 MAC_STAGES = STAGES[1:-1]  # what `total` sums: sampling and MAC's four stages
+TURBOREG_STAGES = ("pivots", "hypotheses")  # backend=turboreg's stages besides graph and pose
 
 
 def summarize(table: pd.DataFrame) -> dict:
@@ -60,7 +61,7 @@ def summarize(table: pd.DataFrame) -> dict:
         if "inlier_ratio_kept" in table
         else float("nan"),
     }
-    for stage in STAGES:
+    for stage in STAGES + TURBOREG_STAGES:
         col = f"t_{stage}_ms"
         if col in table:
             out[f"median_{stage}_ms"] = float(table[col].median())

@@ -187,3 +187,12 @@ def test_fastmac_sampler_in_front(tmp_path):
     assert len(res.kept) == 400
     assert {"sampling", "graph", "pivots", "hypotheses", "pose", "total"} <= set(res.timings)
     assert pose_errors(res.pose, gt, 2.0, 0.05).success
+
+
+def test_summary_shows_turboregs_stages():
+    from fastmac_exp.experiment import format_summary
+
+    s = {"pairs": 1, "median_graph_ms": 1.0, "median_pivots_ms": 2.0, "median_hypotheses_ms": 3.0,
+         "median_cliques_ms": float("nan"), "median_pose_ms": 0.1}  # fmt: skip
+    line = next(x for x in format_summary(s).splitlines() if x.startswith("median ms:"))
+    assert "pivots 2.0" in line and "hypotheses 3.0" in line and "cliques" not in line
