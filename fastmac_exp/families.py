@@ -41,7 +41,7 @@ class Family:
     resolution_from_clouds: bool  # MAC computes the resolution from the two clouds (else FIXED_RESOLUTION)
     sampler_normalize: str  # the reference code's high-pass score normalisation: "minmax" or "none"
     up_axis: str  # the sensor frame's up direction, for viewers: "-y" (camera frames) or "+z" (LiDAR)
-    buffer_model: str  # which of BUFFER's published weights fit this data
+    buffer_model: str  # which published weights (BUFFER, SpinNet: 3dmatch | kitti) fit this data
 
     def graph(self, descriptor: str) -> tuple[str, float]:
         return self.graph_by_descriptor.get(descriptor, self.graph_default)

@@ -131,6 +131,13 @@ def _pad_amount(op) -> int:
     return span // 2 if span % 2 == 0 else (span - 1) // 2
 
 
+def _hits(pts: torch.Tensor, centres: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """(cells, P) bool: float32 squared distance below r2 (pointnet2's ball_query test)."""
+    d = pts[None, :, :] - centres[:, None, :]
+    d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+    return d2 < r2
+
+
 class SpinNetReference(nn.Module):
     """SpinNet's Descriptor_Net with the published parameter names (bn_mapping is unused upstream too)."""
 
@@ -174,9 +181,7 @@ class SpinNetReference(nn.Module):
         ns = self.samples
         outs = []
         for pts in aligned:  # one keypoint at a time: (cells, P) distances
-            d = pts[None, :, :] - centres[:, None, :]
-            d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
-            hit = d2 < r2
+            hit = torch.cat([_hits(pts, centres[c : c + 2048], r2) for c in range(0, self.cells, 2048)])
             rank = torch.cumsum(hit.long(), dim=1) - 1
             count = hit.sum(1)
             idx = torch.zeros(self.cells, ns, dtype=torch.long)  # ball_query's zero-initialised indices

@@ -195,15 +195,16 @@ def group_cells_numpy(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
     out = np.zeros((m, ncell, ns, 3), dtype=np.float32)
     rot = g.rotations[np.arange(ncell) % p.azi_n]  # (cells, 3, 3)
     for j in range(m):
-        d = pts[j][None, :, :] - g.centres[:, None, :]  # (cells, P, 3)
-        d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
-        hit = d2 < g.r2
-        rank = np.cumsum(hit, axis=1) - 1
-        c, s = np.nonzero(hit & (rank < ns))
-        rel = np.einsum("cij,cj->ci", rot[c], d[c, s])
-        out[j, c, rank[c, s]] = rel
-        empty = ~hit.any(axis=1)
-        out[j, empty, 0] = np.einsum("cij,cj->ci", rot[empty], d[empty, 0])
+        for lo in range(0, ncell, 1024):
+            cc = slice(lo, min(lo + 1024, ncell))
+            d = pts[j][None, :, :] - g.centres[cc, None, :]  # (cells, P, 3)
+            d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+            hit = d2 < g.r2
+            rank = np.cumsum(hit, axis=1) - 1
+            c, s = np.nonzero(hit & (rank < ns))
+            out[j, lo + c, rank[c, s]] = np.einsum("cij,cj->ci", rot[lo + c], d[c, s])
+            empty = np.flatnonzero(~hit.any(axis=1))
+            out[j, lo + empty, 0] = np.einsum("cij,cj->ci", rot[lo + empty], d[empty, 0])
     return out.reshape(m, ncell * ns, 3)
 
 
@@ -216,6 +217,7 @@ class SpinNetModel:
     reads: desc_path, params, ref, output_dim)."""
 
     ref = None
+    ref_path = None
 
     def __init__(self, path: Path, threads: int, providers="auto") -> None:
         self.desc_path = path
