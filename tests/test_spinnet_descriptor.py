@@ -15,12 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.patches import voxel_down
 from fastmac_exp.descriptors.spinnet import (
     SHIPPED,
     SpinNetDescriptor,
     SpinNetParams,
+    farthest_points,
     group_cells,
     group_cells_numpy,
 )
@@ -96,17 +98,29 @@ def test_cpp_grouping_equals_brute_force():
     np.testing.assert_array_equal(group_cells(pts, p), group_cells_numpy(pts, p))
 
 
-def test_keypoint_option():
+def test_keypoint_options():
     rng = np.random.default_rng(1)
     pts = rng.uniform(-1, 1, (20000, 3))
-    d = SpinNetDescriptor(keypoints=50, progress=False)
-    _, kp = d.keypoints(pts, 0.1)
-    _, again = d.keypoints(pts, 0.1)
-    _, every = SpinNetDescriptor(keypoints=0, progress=False).keypoints(pts, 0.1)
-    assert len(kp) == 50 and np.array_equal(kp, again) and len(every) == len(voxel_down(pts, 0.1))
-    assert (np.isin(kp.view([("", kp.dtype)] * 3), every.view([("", every.dtype)] * 3))).all()
+    every = voxel_down(pts, 0.1)
+    rows = lambda kp: {tuple(r) for r in kp}  # noqa: E731
+    for sampling in ("fps", "random"):
+        d = SpinNetDescriptor(keypoints=50, sampling=sampling, progress=False)
+        _, kp = d.keypoints(pts, 0.1)
+        _, again = d.keypoints(pts, 0.1)
+        assert len(kp) == 50 and np.array_equal(kp, again) and rows(kp) <= rows(every)
+    _, fps = SpinNetDescriptor(keypoints=50, sampling="fps", progress=False).keypoints(pts, 0.1)
+    gap = lambda kp: cKDTree(kp).query(every)[0].max()  # noqa: E731
+    _, rnd = SpinNetDescriptor(keypoints=50, sampling="random", progress=False).keypoints(pts, 0.1)
+    assert gap(fps) < gap(rnd)  # farthest points cover the cloud more evenly
+    assert len(SpinNetDescriptor(keypoints=0, progress=False).keypoints(pts, 0.1)[1]) == len(every)
+    auto = SpinNetDescriptor(progress=False)
+    assert len(auto.keypoints(pts, 0.05, family="3dmatch")[1]) == 400
+    assert len(auto.keypoints(pts, 0.05, family="kitti")[1]) == 1000
+    assert np.array_equal(farthest_points(every, 20), farthest_points(every, 60)[:20])  # nested prefixes
     with pytest.raises(InputError, match="keypoints must be >= 0"):
         SpinNetDescriptor(keypoints=-1)
+    with pytest.raises(InputError, match="sampling must be one of"):
+        SpinNetDescriptor(sampling="grid")
 
 
 @needs_fragment
@@ -138,7 +152,7 @@ def test_config_and_family():
         cfg = compose("config", overrides=["descriptor=spinnet"])
     d = instantiate(cfg.descriptor)
     assert isinstance(d, SpinNetDescriptor) and d.name == "spinnet" and d.graph_key == "spinnet"
-    assert d.max_keypoints == 250 and d.threads == 1
+    assert d.max_keypoints is None and d.sampling is None and d.threads == 1
     assert d.model_for("3dlomatch").desc_path.name == "spinnet_3dmatch.onnx"
     assert d.model_for("kitti").desc_path.name == "spinnet_kitti.onnx"
     assert d.model_for("kitti").params.align == "none" and d.model_for("3dmatch").params.align == "pca"
@@ -160,7 +174,7 @@ def test_runtime_path_does_not_import_torch():
 @pytest.mark.slow
 @pytest.mark.skipif(not (SHARED / "data" / "pairs.json").is_file(), reason="no ../shared/data")
 def test_real_indoor_pairs_inlier_ratio_at_least_twice_fpfh():
-    """The 4 real indoor pairs at the default 250 keypoints a cloud (~5 min on a loaded 2-core machine)."""
+    """The 4 real indoor pairs at the default 400 keypoints a fragment (~6 min on a loaded 2-core machine)."""
     from fastmac_exp.datasets.user_pairs import SharedRealPairs
     from fastmac_exp.descriptors.fpfh import FPFHDescriptor
 

@@ -10,7 +10,7 @@ Upstream's forward on a patch `(M, P, 3)` (P = 2048 points within des_r of the k
 1. offsets from the keypoint; 3DMatch: rotated so that the patch's normal (the least eigenvector of the
    uncentred scatter, signed so that axis . keypoint <= 0) becomes +z (Rodrigues); KITTI: unrotated;
 2. a spherical grid of rad_n x ele_n x azi_n cell centres (shells at (i + 1/2) / rad_n x des_r, elevation
-   (j + 1/2) pi / ele_n, azimuth (k + 1) 2 pi / azi_n); per cell the first `samples` patch points (slot
+   (j + 1/2) pi / ele_n, azimuth (k + 1/2) 2 pi / azi_n); per cell the first `samples` patch points (slot
    order) with float32 squared distance below voxel_r^2 (pointnet2's ball_query); slots beyond the count
    repeat the first hit and are replaced by the centre; a cell with no hit holds patch slot 0 in its slot 0
    (ball_query's zero-initialised indices) and the centre elsewhere;

@@ -809,7 +809,9 @@ class BufferDescriptor(FeatureDescriptor):
         bar.close()
         return {"wait_for_patches_s": t_prep, "network_s": t_run}
 
-    def keypoints(self, points: np.ndarray, voxel: float, what: str = "cloud") -> tuple[np.ndarray, np.ndarray]:
+    def keypoints(
+        self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch"
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(the cleaned cloud, its keypoints): the voxel keypoints (FPFH's); SpinNet takes a subset."""
         return keypoints(points, voxel, what)
 
@@ -824,7 +826,7 @@ class BufferDescriptor(FeatureDescriptor):
         self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch", scale=None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints `(M, 3)` (voxel downsampling at `voxel`) and their descriptors `(M, D)` float32."""
-        pts, kp = self.keypoints(points, voxel, what)
+        pts, kp = self.keypoints(points, voxel, what, family=family)
         model = self.model_for(family)
         scale = self.scale_for(model, voxel) if scale is None else scale
         return kp, self.describe(model, pts, kp, scale, what)
@@ -854,7 +856,7 @@ class _Bound(FeatureDescriptor):
         return self.desc.features(points, voxel, what=what, family=self.family, scale=self.scale)
 
     def keypoints(self, points, voxel, what="cloud"):
-        return self.desc.keypoints(points, voxel, what)
+        return self.desc.keypoints(points, voxel, what, family=self.family)
 
     def features_of(self, cloud, kp, rows, what="cloud"):
         return self.desc.describe(self.desc.model_for(self.family), cloud, kp, self.scale, what, rows)

@@ -8,9 +8,11 @@ unless a GPU provider is asked for); torch is never imported here.
 Describing the keypoints of one cloud (lengths are SpinNet's, in metres, times `scale` = the pair's voxel /
 the model's reference voxel, 1 on the real indoor and LiDAR pairs):
 
-1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then a seeded random
-   subset of at most `keypoints` of them (upstream describes 5,000 random points a fragment on a GPU; on a
-   CPU the network costs ~0.1-0.2 s a keypoint, so the default is smaller);
+1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then at most `keypoints`
+   of them (upstream describes 5,000 random points a fragment on a GPU; on a CPU the network costs ~0.09-0.15
+   s a keypoint indoors, ~0.05-0.08 outdoors, so the defaults are 400 farthest-point-sampled keypoints a
+   fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's; `MODEL_KEYPOINTS`). Source and
+   target take the same rule, so a cloud described once serves as either;
 2. the patch cloud: the cloud voxel-downsampled at `downsample` (3DMatch model: 0.01 m; KITTI: none, the raw
    scan as upstream), shuffled (seeded);
 3. patch: the first `patch_points - 1` (2047) points of the shuffled cloud within `des_r` (0.3 / 2.0 m),
@@ -62,7 +64,11 @@ from fastmac_exp.families import FAMILIES
 log = logging.getLogger(__name__)
 
 SHIPPED = {"3dmatch": "models/spinnet_3dmatch.onnx", "kitti": "models/spinnet_kitti.onnx"}
-DEFAULT_KEYPOINTS = 250
+SAMPLINGS = ("fps", "random")
+# per model: (keypoints a cloud, sampling). Indoors farthest-point sampling covers a fragment evenly (on the 4
+# real indoor pairs 400 FPS keypoints give ~1.5x the inlier ratio of 400 random ones); on a LiDAR scan FPS
+# spends its points on the sparse periphery, and a random subset (denser near the sensor) does better
+MODEL_KEYPOINTS = {"3dmatch": (400, "fps"), "kitti": (1000, "random")}
 
 
 @dataclass(frozen=True)
@@ -135,7 +141,7 @@ _GRIDS_LOCK = threading.Lock()
 def cell_centres(des_r: float, rad_n: int, azi_n: int, ele_n: int) -> np.ndarray:
     """(rad_n * ele_n * azi_n, 3) float32 centres, radial-major, then elevation, azimuth (upstream
     get_voxel_coordinate: shells (i + 1/2) / rad_n x des_r, elevation (j + 1/2) pi / ele_n, azimuth
-    (k + 1) 2 pi / azi_n)."""
+    (k + 1/2) 2 pi / azi_n)."""
     beta = np.linspace(0, np.pi, ele_n, endpoint=False) + np.pi / ele_n / 2
     alpha = np.linspace(0, 2 * np.pi, azi_n, endpoint=False) + np.pi / azi_n
     b, a = np.meshgrid(beta, alpha, indexing="ij")
@@ -208,6 +214,23 @@ def group_cells_numpy(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
     return out.reshape(m, ncell * ns, 3)
 
 
+def farthest_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Rows of `n` of `points` by farthest-point sampling from a seeded random start (in sampling order: a
+    prefix of the result is the sampling of fewer points)."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = min(int(n), len(pts))
+    out = np.empty(n, dtype=np.int64)
+    if n == 0:
+        return out
+    out[0] = np.random.default_rng(seed).integers(len(pts))
+    dist = np.full(len(pts), np.inf)
+    for i in range(1, n):
+        delta = pts - pts[out[i - 1]]
+        np.minimum(dist, np.einsum("ij,ij->i", delta, delta), out=dist)
+        out[i] = int(np.argmax(dist))
+    return out
+
+
 # ----------------------------------------------------------------------------------------------------
 # the model
 
@@ -237,18 +260,20 @@ class SpinNetDescriptor(BufferDescriptor):
 
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
     as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
-    many keypoints a cloud (a seeded random subset of the voxel keypoints; 0 = all): each costs ~0.1-0.2 s of
-    one CPU core (training/SPINNET_MODEL_CARD.md), so a pair costs about 2 x keypoints of them.
-    `downsample`: the patch cloud's grid in metres at scale 1 (None: the model's). The rest as BUFFER's:
-    `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`, `batch_size`, `execution_providers`,
-    `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is described once), `axis` (None: the
-    model's; "pca" or "none" to override)."""
+    many keypoints a cloud (None: the model's default, 400 indoors / 1,000 for KITTI; 0 = every voxel
+    keypoint); each costs ~0.05-0.15 s of one CPU core (training/SPINNET_MODEL_CARD.md). `sampling`: how
+    they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None: the model's, fps
+    indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
+    model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,
+    `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is
+    described once), `axis` (None: the model's; "pca" or "none" to override)."""
 
     name = "spinnet"
     default_graph_key = "spinnet"
     cost_note = (
-        "SpinNet costs ~0.1-0.2 s a keypoint on a CPU core (descriptor.keypoints, default 250 a cloud: ~1-1.5 "
-        "min a pair on a loaded 2-core machine); a pair in the correspondence cache is not described again"
+        "SpinNet describes 400 keypoints a 3DMatch fragment (~40-60 s on a CPU core) and 1,000 a KITTI scan "
+        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache is not "
+        "described again"
     )
 
     def __init__(
@@ -256,7 +281,8 @@ class SpinNetDescriptor(BufferDescriptor):
         model: str = "auto",
         model_3dmatch: str = SHIPPED["3dmatch"],
         model_kitti: str = SHIPPED["kitti"],
-        keypoints: int = DEFAULT_KEYPOINTS,
+        keypoints: int | None = None,
+        sampling: str | None = None,
         downsample: float | None = None,
         voxel_size: float | None = None,
         scale: float | None = None,
@@ -272,8 +298,10 @@ class SpinNetDescriptor(BufferDescriptor):
         graph_key: str | None = None,
     ) -> None:
         FeatureDescriptor.__init__(self, graph_key)
-        if keypoints < 0:
+        if keypoints is not None and keypoints < 0:
             raise InputError(f"spinnet keypoints must be >= 0 (0 = every voxel keypoint), got {keypoints}")
+        if sampling is not None and sampling not in SAMPLINGS:
+            raise InputError(f"spinnet sampling must be one of {SAMPLINGS}, got {sampling!r}")
         if downsample is not None and downsample < 0:
             raise InputError(f"spinnet downsample must be >= 0 or None (the model's), got {downsample}")
         if cache_clouds < 0:
@@ -292,7 +320,8 @@ class SpinNetDescriptor(BufferDescriptor):
         self.model_3dmatch = str(model_3dmatch)
         self.model_kitti = str(model_kitti)
         self.precision = "float32"
-        self.max_keypoints = int(keypoints)
+        self.max_keypoints = None if keypoints is None else int(keypoints)
+        self.sampling = sampling
         self.downsample = downsample
         self.voxel_size = voxel_size
         self.scale = scale
@@ -330,12 +359,19 @@ class SpinNetDescriptor(BufferDescriptor):
 
     # -- keypoints: a seeded subset of the voxel keypoints
 
-    def keypoints(self, points, voxel, what="cloud"):
+    def keypoints(self, points, voxel, what="cloud", family="3dmatch"):
+        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 400 for the
+        3DMatch model, 1,000 for KITTI's), by `sampling` (None: the model's, fps / random)."""
         pts, kp = voxel_keypoints(points, voxel, what)
-        n = self.max_keypoints
+        which = self.model if self.model != "auto" else FAMILIES[family].buffer_model if family in FAMILIES else ""
+        n_default, how_default = MODEL_KEYPOINTS.get(which, MODEL_KEYPOINTS["3dmatch"])
+        n = self.max_keypoints if self.max_keypoints is not None else n_default
+        how = self.sampling or how_default
         if n and len(kp) > n:
-            rows = np.sort(np.random.default_rng(self.seed).choice(len(kp), size=n, replace=False))
-            kp = kp[rows]
+            if how == "fps":
+                kp = kp[farthest_points(kp, n, self.seed)]
+            else:
+                kp = kp[np.sort(np.random.default_rng(self.seed).choice(len(kp), size=n, replace=False))]
         return pts, kp
 
     # -- description (BufferDescriptor.describe keeps the per-cloud caches)
