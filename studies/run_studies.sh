@@ -28,7 +28,7 @@ SEEDS=${SEEDS:-0,1,2}                        # stochastic samplers: seeds of the
 STUDIES=("$@")
 [ ${#STUDIES[@]} -eq 0 ] && STUDIES=(sampling filter signal profile descriptor sota stochastic timing)
 OUT=outputs/studies
-LOG=$OUT/run_studies.log
+LOG=${LOG:-$OUT/run_studies.log}                # a second, concurrent invocation: LOG=... (append it after)
 mkdir -p "$OUT"
 # one BLAS / OpenMP thread: the machine is shared, and OpenBLAS threads spinning on busy cores make a
 # 1,000 x 1,000 eigendecomposition 30x slower
@@ -126,7 +126,7 @@ for study in "${STUDIES[@]}"; do
       # the 7 real outdoor pairs) and indoors (the 3DMatch-like family and the 4 real indoor pairs), the first
       # $DESC_N synthetic pairs, seeds $DESC_SEEDS. SpinNet (~1 min a cloud on this CPU) and BUFFER describe each
       # pair once per seed: the correspondence cache (a private one, emptied first) serves every ratio.
-      rm -rf "$OUT/_cache_descriptor"
+      [ "${DESC_KEEP_CACHE:-0}" = 1 ] || rm -rf "$OUT/_cache_descriptor"  # 1: a concurrent second invocation
       for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch}; do
         lim=""; synthetic "$d" && lim="limit=${DESC_N:-6}"
         # shellcheck disable=SC2046
