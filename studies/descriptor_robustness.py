@@ -1,12 +1,12 @@
-"""Section 5 of docs/results.md: FastMAC's robustness to the descriptor (paper Fig. desc) on KITTI (the KITTI-like
-family and the real outdoor pairs) and indoors (the 3DMatch-like family and the real indoor pairs), every
-descriptor here (fpfh, fcgf_lite, buffer, spinnet), from outputs/studies/descriptor_robustness_<data>; one
-figure a panel (RR / RE / TE against the ratio, a line a descriptor), the inlier ratio of each descriptor's
-correspondences, the paper's claim checked; then the hand-written BUFFER section
-(studies/text/descriptor_robustness_buffer.md).
+"""Section 5 of docs/results.md: FastMAC's robustness to the descriptor (paper Fig. desc) on KITTI (the
+KITTI-like family and the real outdoor pairs) and indoors (the 3DMatch-like family and the real indoor
+pairs), every descriptor here (fpfh, fcgf_lite, buffer, spinnet), from
+outputs/studies/descriptor_robustness_<data>; one figure a panel (RR / RE / TE against the ratio, a line a
+descriptor), the inlier ratio of each descriptor's correspondences, the paper's claim checked; then the
+hand-written BUFFER section (studies/text/descriptor_robustness_buffer.md).
 
-`python -m studies.descriptor_robustness` rewrites section 5 of an existing docs/results.md (and its rows in
-the wall-time table) without the other studies' runs."""
+`python -m studies.descriptor_robustness` rewrites section 5 of an existing docs/results.md (and its rows
+in the wall-time table) without the other studies' runs."""
 
 from __future__ import annotations
 
@@ -26,9 +26,9 @@ from studies.common import (
     Page,
     data_heading,
     fnum,
+    row_of,
     rr_cell,
     rr_mean,
-    row_of,
     te_cell,
     text,
     verbatim,
@@ -70,11 +70,13 @@ def _claim(page: Page, data: str, t, a, descs: list[str]) -> str:
         verdict = "partly (the strong keep RR; the weaker lose none either)"
     else:
         verdict = "does not hold (a strong descriptor loses RR at 1 %)"
-    ev = ", ".join(f"{d} {fnum(rr_mean(row_of(a, d, 1.0)))} → {fnum(rr_mean(row_of(a, d, 0.01)))}" for d in descs)
+    ev = ", ".join(
+        f"{d} {fnum(rr_mean(row_of(a, d, 1.0)))} → {fnum(rr_mean(row_of(a, d, 0.01)))}" for d in descs
+    )
     page.claim(CLAIM, verdict, f"{data}: RR 100 % → 1 %: {ev}")
     return (
         f"Paper's claim (*{CLAIM}*), here: **{verdict}**. RR at 100 % → 1 %: {ev} (one pair = "
-        f"{one:.1f} points; \"strong\" = an inlier ratio above twice FPFH's: {', '.join(strong) or 'none'})."
+        f'{one:.1f} points; "strong" = an inlier ratio above twice FPFH\'s: {", ".join(strong) or "none"}).'
     )
 
 
@@ -93,7 +95,9 @@ def render(page: Page) -> None:
         rows = []
         for i, r in enumerate(RATIOS):
             cells = [f"{r:g}"] + [rr_cell(row_of(a, d, r)) for d in descs]
-            cells += [fnum(row_of(a, d, r)["RE_deg"], 2) if row_of(a, d, r) is not None else "–" for d in descs]
+            cells += [
+                fnum(row_of(a, d, r)["RE_deg"], 2) if row_of(a, d, r) is not None else "–" for d in descs
+            ]
             cells += [te_cell(row_of(a, d, r)) for d in descs]
             cells += [fnum(PAPER_RR[(ref, k)][i], 2) for k in paper_cols]
             rows.append(cells)
@@ -102,15 +106,21 @@ def render(page: Page) -> None:
         page.add(f"Mean inlier ratio of the correspondences: {inl}.", "")
         if data.startswith("real_"):
             first = t[np.isclose(t["ratio"].astype(float), 1.0)]
-            piv = first.pivot_table(index="pair", columns="descriptor", values="inlier_ratio_in", aggfunc="mean")
+            piv = first.pivot_table(
+                index="pair", columns="descriptor", values="inlier_ratio_in", aggfunc="mean"
+            )
             piv = piv[[d for d in descs if d in piv.columns]]
             prow = [[f"`{p}`"] + [fnum(100 * v, 1) for v in r] for p, r in piv.iterrows()]
             page.add(
-                markdown_table(["pair (inlier ratio, %)"] + list(piv.columns), prow, ["l"] + ["r"] * len(piv.columns)),
+                markdown_table(
+                    ["pair (inlier ratio, %)"] + list(piv.columns), prow, ["l"] + ["r"] * len(piv.columns)
+                ),
                 "",
             )
         desc_s = (
-            t.loc[~t["describe_cached"].fillna(False).astype(bool)].groupby("descriptor")["t_describe_ms"].median()
+            t.loc[~t["describe_cached"].fillna(False).astype(bool)]
+            .groupby("descriptor")["t_describe_ms"]
+            .median()
             if "describe_cached" in t
             else None
         )

@@ -127,7 +127,8 @@ def test_keypoint_options():
 def test_rotation_invariance_on_a_real_fragment(desc):
     """3DMatch redkitchen cloud_bin_0 rotated about its sensor, the same keypoints rotated with it: the
     rotated keypoint's descriptor is the nearest of the 40 for most keypoints (the patch cloud's grid, the
-    float32 grouping and the 4.5 degree azimuth cells are not exactly invariant; measured in the model card)."""
+    float32 grouping and the 4.5 degree azimuth cells are not exactly invariant; measured in the model
+    card)."""
     from fastmac_exp.io import read_points
 
     pts = np.asarray(read_points(FRAGMENT), dtype=np.float64)

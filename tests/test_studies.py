@@ -229,10 +229,17 @@ def test_descriptor_study_splices_section_5(tmp_path):
         rows += _pairs(4, 4, descriptor="spinnet", ratio=ratio, **base | {"inlier_ratio_in": 0.2})
     _run(studies / "descriptor_robustness_real_indoor" / "0", rows)
     docs.mkdir()
-    (docs / "results.md").write_text("# R\n\n## 4. Before\n\nKEEP-4\n\n## 5. Old\n\nold text\n\n## 6. After\n\nKEEP-6\n")
+    (docs / "results.md").write_text(
+        "# R\n\n## 4. Before\n\nKEEP-4\n\n## 5. Old\n\nold text\n\n## 6. After\n\nKEEP-6\n"
+    )
     descriptor_robustness.splice(studies, docs)
     md = (docs / "results.md").read_text()
-    assert "old text" not in md and "KEEP-4" in md and "KEEP-6" in md and md.index("## 5.") < md.index("## 6. After")
+    assert (
+        "old text" not in md
+        and "KEEP-4" in md
+        and "KEEP-6" in md
+        and md.index("## 5.") < md.index("## 6. After")
+    )
     heading = "### real_indoor: real indoor pairs (3DMatch/3DLoMatch fragments) — 4 pairs"
     assert _table_row(md, heading, "0.01")[1:3] == ["75.0", "100.0"]
     assert _table_row(md, heading, "`p0`") == ["`p0`", "5.0", "20.0"]

@@ -112,9 +112,10 @@ def export_family(family: str, weights: Path, out: Path, tol: float) -> dict:
     import onnx
 
     model = onnx.load(str(path))
+    src = f"pre-trained_models/{FILES[family]} ({sha256(weights / FILES[family])[:16]})"
     meta = {"fastmac.preprocess": "spinnet", "fastmac.name": "spinnet", "fastmac.precision": "float32",
             "fastmac.licence": LICENCE, "spinnet.upstream": f"{UPSTREAM}@{UPSTREAM_COMMIT[:8]}",
-            "spinnet.source_file": f"pre-trained_models/{FILES[family]} ({sha256(weights / FILES[family])[:16]})"}  # fmt: skip
+            "spinnet.source_file": src}  # fmt: skip
     meta.update({f"spinnet.{k}": v for k, v in asdict(p).items()})
     del model.metadata_props[:]
     for k, v in meta.items():
@@ -154,8 +155,11 @@ def export_family(family: str, weights: Path, out: Path, tol: float) -> dict:
             "descriptor_max_abs_diff_onnx_vs_torch": diff,
             "tolerance": tol,
         },
-        "seconds_per_keypoint_1_thread_loaded": {"grouping_cpp": t_group, "torch_reference": t_torch,
-                                                  "onnxruntime": t_ort},  # fmt: skip
+        "seconds_per_keypoint_1_thread_loaded": {
+            "grouping_cpp": t_group,
+            "torch_reference": t_torch,
+            "onnxruntime": t_ort,
+        },  # fmt: skip
         "network_gmac_per_keypoint": patch_flops(asdict(p)) / 1e9,
     }
     if diff > tol or cells_diff > 1e-6:

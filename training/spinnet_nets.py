@@ -76,7 +76,11 @@ def load_published(module: nn.Module, path: str | Path) -> dict:
         state = state["state_dict"]
     sub = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     result = module.load_state_dict(sub, strict=True)
-    return {"missing": list(result.missing_keys), "unexpected": list(result.unexpected_keys), "loaded": len(sub)}
+    return {
+        "missing": list(result.missing_keys),
+        "unexpected": list(result.unexpected_keys),
+        "loaded": len(sub),
+    }
 
 
 def _circular(x: torch.Tensor, pad: int) -> torch.Tensor:
@@ -271,7 +275,15 @@ def patch_flops(cfg: dict) -> float:
     chans = [(16, 32), (32, 32), (32, 64), (64, 64)]
     for i, (ci, co) in enumerate(chans):
         macs += (r - 2 * (i + 1)) * e * a * ci * co * 27
-    for ci, co, k in [(64, 128, 3), (128, 128, 3), (128, 64, 3), (64, 64, 3), (64, 32, 2), (32, 32, 2), (32, 32, 2)]:
+    for ci, co, k in [
+        (64, 128, 3),
+        (128, 128, 3),
+        (128, 64, 3),
+        (64, 64, 3),
+        (64, 32, 2),
+        (32, 32, 2),
+        (32, 32, 2),
+    ]:
         macs += e * a * ci * co * k * k
     return float(macs)
 

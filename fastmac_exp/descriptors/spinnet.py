@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.buffer import (
     BufferDescriptor,
     CellTable,
@@ -54,7 +55,6 @@ from fastmac_exp.descriptors.buffer import (
     cut_patches,
     pca_axes,
 )
-from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
 from fastmac_exp.descriptors.patches import keypoints as voxel_keypoints
 from fastmac_exp.descriptors.patches import voxel_down
@@ -272,8 +272,8 @@ class SpinNetDescriptor(BufferDescriptor):
     default_graph_key = "spinnet"
     cost_note = (
         "SpinNet describes 400 keypoints a 3DMatch fragment (~40-60 s on a CPU core) and 1,000 a KITTI scan "
-        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache is not "
-        "described again"
+        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache "
+        "is not described again"
     )
 
     def __init__(
@@ -343,7 +343,9 @@ class SpinNetDescriptor(BufferDescriptor):
             self.load(self.model)
 
     def model_path(self, which: str) -> Path:
-        return resolve_model_path({"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which))
+        return resolve_model_path(
+            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
+        )
 
     def load(self, which: str) -> SpinNetModel:
         if which not in self._models:
@@ -354,7 +356,9 @@ class SpinNetDescriptor(BufferDescriptor):
         if self.model != "auto":
             return self.load(self.model)
         if family not in FAMILIES:
-            raise InputError(f"descriptor=spinnet: no SpinNet model for family {family!r}; set descriptor.model")
+            raise InputError(
+                f"descriptor=spinnet: no SpinNet model for family {family!r}; set descriptor.model"
+            )
         return self.load(FAMILIES[family].buffer_model)  # the learned models' training set (3dmatch | kitti)
 
     # -- keypoints: a seeded subset of the voxel keypoints
@@ -363,7 +367,13 @@ class SpinNetDescriptor(BufferDescriptor):
         """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 400 for the
         3DMatch model, 1,000 for KITTI's), by `sampling` (None: the model's, fps / random)."""
         pts, kp = voxel_keypoints(points, voxel, what)
-        which = self.model if self.model != "auto" else FAMILIES[family].buffer_model if family in FAMILIES else ""
+        which = (
+            self.model
+            if self.model != "auto"
+            else FAMILIES[family].buffer_model
+            if family in FAMILIES
+            else ""
+        )
         n_default, how_default = MODEL_KEYPOINTS.get(which, MODEL_KEYPOINTS["3dmatch"])
         n = self.max_keypoints if self.max_keypoints is not None else n_default
         how = self.sampling or how_default
