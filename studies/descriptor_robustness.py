@@ -53,9 +53,8 @@ def _ir(t, d: str) -> float:
 
 def _claim(page: Page, data: str, t, a, descs: list[str]) -> str:
     """The paper's claim on one data set: RR at 1 % against 100 % per descriptor. "Strong" as the paper
-    has it:
-    SpinNet (the paper's list: GeoTransformer, CoFiNet, SpinNet, Predator), and BUFFER, SpinNet's successor;
-    "weak": FPFH and fcgf_lite (standing in for FCGF)."""
+    has it: SpinNet (the paper's list: GeoTransformer, CoFiNet, SpinNet, Predator), and BUFFER, SpinNet's
+    successor; "weak": FPFH and fcgf_lite (standing in for FCGF)."""
     pairs = int(a["pairs"].max()) // max(int(a["seeds"].max()) if "seeds" in a else 1, 1)
     one = 100.0 / max(pairs, 1)
     drops = {d: rr_mean(row_of(a, d, 1.0)) - rr_mean(row_of(a, d, 0.01)) for d in descs}
