@@ -62,7 +62,9 @@ def _claim(page: Page, data: str, t, a, descs: list[str]) -> str:
     weak = [d for d in descs if d not in STRONG]
     keeps = all(drops[d] < one - 1e-9 for d in strong)
     weak_lose = [d for d in weak if drops[d] >= one - 1e-9]
-    if not strong:
+    if any(not np.isfinite(v) for v in drops.values()):
+        verdict = "incomplete (a descriptor lacks ratio 1 or 0.01)"
+    elif not strong:
         verdict = "not tested (no strong descriptor ran)"
     elif keeps and weak_lose:
         verdict = "holds"
@@ -105,6 +107,13 @@ def render(page: Page) -> None:
         page.add(markdown_table(header, rows, ["l"] + ["r"] * (len(header) - 1)), "")
         inl = ", ".join(f"{d} {100 * _ir(t, d):.1f} %" for d in descs)
         page.add(f"Mean inlier ratio of the correspondences: {inl}.", "")
+        n_in = t[np.isclose(t["ratio"].astype(float), 1.0)].groupby("descriptor")["n_in"].median()
+        page.add(
+            "Median correspondences a pair (what the ratios are fractions of; at 1 % FastMAC keeps a hundredth): "
+            + ", ".join(f"{d} {n_in[d]:,.0f}" for d in descs if d in n_in)
+            + ".",
+            "",
+        )
         if data.startswith("real_"):
             first = t[np.isclose(t["ratio"].astype(float), 1.0)]
             piv = first.pivot_table(
@@ -162,7 +171,7 @@ def splice(studies: Path, docs: Path) -> None:
     md = md[:start] + "\n".join(page.md).rstrip() + "\n\n" + md[end:]
     from studies.make_results import wall_times
 
-    new = wall_times(studies)
+    new = "\n".join(wall_times(studies)).splitlines()
     rows = [ln for ln in new if ln.startswith("| `descriptor_robustness_")]
     cmds = [ln for ln in new if ln.startswith("python run.py") and "descriptor_robustness_" in ln]
     lines = md.splitlines()
