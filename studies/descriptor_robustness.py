@@ -109,9 +109,8 @@ def render(page: Page) -> None:
         page.add(f"Mean inlier ratio of the correspondences: {inl}.", "")
         n_in = t[np.isclose(t["ratio"].astype(float), 1.0)].groupby("descriptor")["n_in"].median()
         page.add(
-            "Median correspondences a pair (what the ratios are fractions of; at 1 % FastMAC keeps a hundredth): "
-            + ", ".join(f"{d} {n_in[d]:,.0f}" for d in descs if d in n_in)
-            + ".",
+            "Median correspondences a pair (what the ratios are fractions of; at 1 % FastMAC keeps a "
+            "hundredth): " + ", ".join(f"{d} {n_in[d]:,.0f}" for d in descs if d in n_in) + ".",
             "",
         )
         if data.startswith("real_"):
