@@ -152,6 +152,7 @@ def render(page: Page) -> None:
         if part:
             full = f"Descriptor robustness, {title}: FastMAC (high-pass) on every descriptor"
             page.figure(page.line_figure(part, name, full), f"descriptor robustness, {title}")
+    page.add(*text("descriptor_robustness_findings"))  # by hand, from the tables of the last run
     page.add(*verbatim("descriptor_robustness_buffer"), "")  # training/evaluate.py --real, by hand
 
 
