@@ -161,7 +161,7 @@ def splice(studies: Path, docs: Path) -> None:
     descriptor_robustness rows of the wall-time table and the logged commands."""
     page = Page(studies=studies, docs=docs)
     page.fig.mkdir(parents=True, exist_ok=True)
-    for old in page.fig.glob("descriptor_robustness*.png"):
+    for old in [*page.fig.glob("descriptor_robustness*.png"), *page.csv.glob("descriptor_robustness_*.csv")]:
         old.unlink()
     render(page)
     if page.notes:
