@@ -41,7 +41,7 @@ class Family:
     resolution_from_clouds: bool  # MAC computes the resolution from the two clouds (else FIXED_RESOLUTION)
     sampler_normalize: str  # the reference code's high-pass score normalisation: "minmax" or "none"
     up_axis: str  # the sensor frame's up direction, for viewers: "-y" (camera frames) or "+z" (LiDAR)
-    buffer_model: str  # which of BUFFER's published weights fit this data
+    buffer_model: str  # which published weights (BUFFER, SpinNet: 3dmatch | kitti) fit this data
     # TurboReg's defaults (backend=turboreg): max_N, tau_length_consis, num_pivot (K1), radiu_nms, tau_inlier,
     # from TurboReg's README (3DMatch + FPFH) and its demo script demo_py/o3d_fpfh.py (KITTI-like)
     turboreg: tuple[int, float, int, float, float] = (7000, 0.012, 2000, 0.15, 0.1)

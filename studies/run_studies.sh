@@ -28,7 +28,7 @@ SEEDS=${SEEDS:-0,1,2}                        # stochastic samplers: seeds of the
 STUDIES=("$@")
 [ ${#STUDIES[@]} -eq 0 ] && STUDIES=(sampling filter signal profile descriptor sota stochastic timing)
 OUT=outputs/studies
-LOG=$OUT/run_studies.log
+LOG=${LOG:-$OUT/run_studies.log}                # a second, concurrent invocation: LOG=... (append it after)
 mkdir -p "$OUT"
 # one BLAS / OpenMP thread: the machine is shared, and OpenBLAS threads spinning on busy cores make a
 # 1,000 x 1,000 eigendecomposition 30x slower
@@ -122,18 +122,17 @@ for study in "${STUDIES[@]}"; do
         sweep "$OUT/time_profile_$d/mac" $(data_args "$d") sampler=none
       done
       export OMP_NUM_THREADS=1 ;;
-    descriptor)  # Fig. desc: FPFH against the learned descriptors, seed 0, the first $SMALL_N synthetic
-      # pairs: fcgf_lite (trained here) everywhere, BUFFER (published weights; 10-50 s per fragment on this
-      # CPU) on the real pairs only (DESC_SYNTHETIC="fpfh,fcgf_lite,buffer" adds it to the synthetic ones).
-      # A private correspondence cache, emptied first.
-      rm -rf "$OUT/_cache_descriptor"
-      for d in $DATA; do
-        [ "$d" = kitti ] && [ "${KITTI_ALL:-0}" != 1 ] && continue  # RR saturated there; slow cliques
-        lim=""; descs=fpfh,fcgf_lite,buffer
-        synthetic "$d" && lim="limit=$SMALL_N" && descs=${DESC_SYNTHETIC:-fpfh,fcgf_lite}
+    descriptor)  # Fig. desc: every descriptor (fpfh, fcgf_lite, buffer, spinnet) on KITTI (the KITTI-like family and
+      # the 7 real outdoor pairs) and indoors (the 3DMatch-like family and the 4 real indoor pairs), the first
+      # $DESC_N synthetic pairs, seeds $DESC_SEEDS. SpinNet (~1 min a cloud on this CPU) and BUFFER describe each
+      # pair once per seed: the correspondence cache (a private one, emptied first) serves every ratio.
+      [ "${DESC_KEEP_CACHE:-0}" = 1 ] || rm -rf "$OUT/_cache_descriptor"  # 1: a concurrent second invocation
+      for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch}; do
+        lim=""; synthetic "$d" && lim="limit=${DESC_N:-6}"
         # shellcheck disable=SC2046
         sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d") $lim \
-          descriptor="$descs" cache.dir="$OUT/_cache_descriptor"
+          descriptor="${DESCS:-fpfh,fcgf_lite,buffer,spinnet}" seed="${DESC_SEEDS:-0}" \
+          cache.dir="$OUT/_cache_descriptor"
       done ;;
     sota)  # Tables kitti/3dmatch/3dlomatch: MAC, FastMAC@50/20 and peers on the same correspondences
       # Open3D's RANSAC on correspondences takes ~1 s per 1k iterations here (one thread, 5,000 rows), so

@@ -214,3 +214,35 @@ def test_text_needs_every_placeholder():
     lines = common.text("header", machine="M", core=" C.", counts="c", mac_rr="r")
     assert lines[:2] == ["# Results: the FastMAC paper's studies on this project", ""]
     assert lines[4].startswith("**Machine:** M; the two cores") and lines[4].endswith("each other. C.")
+
+
+def test_descriptor_study_splices_section_5(tmp_path):
+    """studies.descriptor_robustness: a strong descriptor (IR > 2x FPFH's) that keeps RR at 1 % while FPFH
+    loses a pair -> the claim holds; per-pair inlier ratios; section 5 replaced, the rest kept."""
+    from studies import descriptor_robustness
+
+    studies, docs = tmp_path / "studies", tmp_path / "docs"
+    base = dict(dataset="shared_real", backend="cpp", sampler="highpass", seed=0)
+    rows = []
+    for ratio in (1.0, 0.01):
+        rows += _pairs(4, 4 if ratio == 1.0 else 3, descriptor="fpfh", ratio=ratio, **base)
+        rows += _pairs(4, 4, descriptor="spinnet", ratio=ratio, **base | {"inlier_ratio_in": 0.2})
+    _run(studies / "descriptor_robustness_real_indoor" / "0", rows)
+    docs.mkdir()
+    (docs / "results.md").write_text(
+        "# R\n\n## 4. Before\n\nKEEP-4\n\n## 5. Old\n\nold text\n\n## 6. After\n\nKEEP-6\n"
+    )
+    descriptor_robustness.splice(studies, docs)
+    md = (docs / "results.md").read_text()
+    assert (
+        "old text" not in md
+        and "KEEP-4" in md
+        and "KEEP-6" in md
+        and md.index("## 5.") < md.index("## 6. After")
+    )
+    heading = "### real_indoor: real indoor pairs (3DMatch/3DLoMatch fragments) — 4 pairs"
+    assert _table_row(md, heading, "0.01")[1:3] == ["75.0", "100.0"]
+    assert _table_row(md, heading, "`p0`") == ["`p0`", "5.0", "20.0"]
+    assert "Mean inlier ratio of the correspondences: fpfh 5.0 %, spinnet 20.0 %." in md
+    assert "here: **holds**. RR at 100 % → 1 %: fpfh 100.0 → 75.0, spinnet 100.0 → 100.0" in md
+    assert (docs / "figures" / "descriptor_robustness_indoor.png").is_file()

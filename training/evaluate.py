@@ -49,18 +49,20 @@ EVAL_SEED = 0
 SHARED = REPO.parent / "shared" / "data"
 CACHE = REPO / ".cache" / "descriptor_eval"
 METHODS = {"mac": ("none", 1.0), "fastmac20": ("highpass", 0.2), "fastmac5": ("highpass", 0.05)}
-DESCRIPTORS = ("fpfh", "fcgf_lite", "buffer")
+DESCRIPTORS = ("fpfh", "fcgf_lite", "buffer", "spinnet")
 
 
 def make_descriptors(names, threads: int, fcgf_model: str) -> dict:
     from fastmac_exp.descriptors.buffer import BufferDescriptor
     from fastmac_exp.descriptors.fpfh import FPFHDescriptor
     from fastmac_exp.descriptors.onnx_descriptor import OnnxDescriptor
+    from fastmac_exp.descriptors.spinnet import SpinNetDescriptor
 
     make = {
         "fpfh": lambda: FPFHDescriptor(),
         "fcgf_lite": lambda: OnnxDescriptor(fcgf_model, threads=threads),
         "buffer": lambda: BufferDescriptor(threads=threads, progress=True),
+        "spinnet": lambda: SpinNetDescriptor(threads=threads, progress=True),
     }
     return {n: make[n]() for n in names}
 

@@ -110,4 +110,51 @@ void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *cen
     }
 }
 
+void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                         const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
+                         const float *rot, int64_t azi_n, float *out) {
+    std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
+    std::vector<int64_t> count(ncell);
+    const float one = 1.0f;
+    for (int64_t j = 0; j < m; ++j) {
+        std::fill(count.begin(), count.end(), 0);
+        float *o = out + j * ncell * ns * 3;
+        const float *base = pts + j * p * 3;
+        for (int64_t s = 0; s < p; ++s) {
+            const float *q = base + s * 3;
+            int64_t v[3];
+            for (int d = 0; d < 3; ++d) {
+                const float f = (q[d] * to_unit + one) * inv_h;
+                int64_t i = int64_t(int32_t(f));
+                v[d] = std::min<int64_t>(std::max<int64_t>(i, 0), g - 1);
+            }
+            const int64_t vox = (v[0] * g + v[1]) * g + v[2];
+            for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
+                const int64_t c = cells[t];
+                if (count[c] >= ns) continue;
+                const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
+                const float d2 = dx * dx + dy * dy + dz * dz;
+                if (d2 < r2) {
+                    const float *r = rot + 9 * (c % azi_n);
+                    float *slot = o + (c * ns + count[c]) * 3;
+                    slot[0] = r[0] * dx + r[1] * dy + r[2] * dz;
+                    slot[1] = r[3] * dx + r[4] * dy + r[5] * dz;
+                    slot[2] = r[6] * dx + r[7] * dy + r[8] * dz;
+                    ++count[c];
+                }
+            }
+        }
+        // a cell without a hit: ball_query's zero-initialised indices put patch slot 0 in its first slot
+        for (int64_t c = 0; c < ncell; ++c) {
+            if (count[c]) continue;
+            const float dx = base[0] - centres[3 * c], dy = base[1] - centres[3 * c + 1], dz = base[2] - centres[3 * c + 2];
+            const float *r = rot + 9 * (c % azi_n);
+            float *slot = o + c * ns * 3;
+            slot[0] = r[0] * dx + r[1] * dy + r[2] * dz;
+            slot[1] = r[3] * dx + r[4] * dy + r[5] * dz;
+            slot[2] = r[6] * dx + r[7] * dy + r[8] * dz;
+        }
+    }
+}
+
 }  // namespace fastmac

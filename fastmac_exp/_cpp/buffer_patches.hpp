@@ -20,4 +20,13 @@ void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints,
 void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
                         const int64_t *ptr, const int16_t *cells, int64_t g, float inv_h, int64_t ns, float *out);
 
+// SpinNet's sphere_query + var_to_invar on aligned patches `pts` (m x p x 3, float32, metres): per cell the
+// first `ns` patch points in slot order with squared distance to the centre below r2, written as the
+// offset from the centre rotated by `rot` (azi_n x 3 x 3, row-major; cell c takes rot[c % azi_n]); empty
+// slots 0; a cell without a hit holds patch slot 0's rotated offset in its first slot (pointnet2's
+// ball_query). The CSR table is over a g^3 grid of [-1, 1]^3 in units of 1 / to_unit (the descriptor radius).
+void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                         const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
+                         const float *rot, int64_t azi_n, float *out);
+
 }  // namespace fastmac

@@ -809,6 +809,12 @@ class BufferDescriptor(FeatureDescriptor):
         bar.close()
         return {"wait_for_patches_s": t_prep, "network_s": t_run}
 
+    def keypoints(
+        self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch"
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(the cleaned cloud, its keypoints): the voxel keypoints (FPFH's); SpinNet takes a subset."""
+        return keypoints(points, voxel, what)
+
     def scale_for(self, model: BufferModel, voxel: float | None) -> float:
         if self.scale is not None:
             return self.scale
@@ -820,7 +826,7 @@ class BufferDescriptor(FeatureDescriptor):
         self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch", scale=None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints `(M, 3)` (voxel downsampling at `voxel`) and their descriptors `(M, D)` float32."""
-        pts, kp = keypoints(points, voxel, what)
+        pts, kp = self.keypoints(points, voxel, what, family=family)
         model = self.model_for(family)
         scale = self.scale_for(model, voxel) if scale is None else scale
         return kp, self.describe(model, pts, kp, scale, what)
@@ -828,7 +834,7 @@ class BufferDescriptor(FeatureDescriptor):
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
         model = self.model_for(pair.family)
         if self.scale is None and not (pair.voxel_size and pair.voxel_size > 0):
-            raise InputError(f"pair {pair.name!r} has no voxel size; set descriptor.scale for BUFFER")
+            raise InputError(f"pair {pair.name!r} has no voxel size; set descriptor.scale for {self.name}")
         scale = self.scale_for(model, pair.voxel_size)
         return correspondences_from_kept_sources(
             _Bound(self, pair.family, scale), pair, rng, match_descriptors
@@ -850,7 +856,7 @@ class _Bound(FeatureDescriptor):
         return self.desc.features(points, voxel, what=what, family=self.family, scale=self.scale)
 
     def keypoints(self, points, voxel, what="cloud"):
-        return keypoints(points, voxel, what)
+        return self.desc.keypoints(points, voxel, what, family=self.family)
 
     def features_of(self, cloud, kp, rows, what="cloud"):
         return self.desc.describe(self.desc.model_for(self.family), cloud, kp, self.scale, what, rows)

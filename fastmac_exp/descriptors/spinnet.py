@@ -1,0 +1,440 @@
+"""SpinNet's learned descriptor (Ao, Hu et al., CVPR 2021) through onnxruntime: `descriptor=spinnet`.
+
+The published 3DMatch and KITTI weights (QingyongHu/SpinNet@5581e7d1, ../shared/models/spinnet), converted
+by `training/spinnet_export.py` into `fastmac_exp/models/spinnet_<family>.onnx`; model card
+`training/SPINNET_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D + the C++ core's grouping + onnxruntime (CPU
+unless a GPU provider is asked for); torch is never imported here.
+
+Describing the keypoints of one cloud (lengths are SpinNet's, in metres, times `scale` = the pair's voxel /
+the model's reference voxel, 1 on the real indoor and LiDAR pairs):
+
+1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then at most `keypoints`
+   of them (upstream describes 5,000 random points a fragment on a GPU; on a CPU the network costs ~0.09-0.15
+   s a keypoint indoors, ~0.05-0.08 outdoors, so the defaults are 400 farthest-point-sampled keypoints a
+   fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's; `MODEL_KEYPOINTS`). Source and
+   target take the same rule, so a cloud described once serves as either;
+2. the patch cloud: the cloud voxel-downsampled at `downsample` (3DMatch model: 0.01 m; KITTI: none, the raw
+   scan as upstream), shuffled (seeded);
+3. patch: the first `patch_points - 1` (2047) points of the shuffled cloud within `des_r` (0.3 / 2.0 m),
+   padded with the keypoint, the keypoint last (BUFFER's `cut_patches`, C++), offsets from the keypoint;
+4. alignment (3DMatch model): the patch's normal (least eigenvector of the uncentred scatter, signed so that
+   axis . keypoint <= 0) rotated to +z (BUFFER's `pca_axes`, `align_rotations`; upstream cal_Z_axis and
+   RodsRotatFormula); the KITTI model keeps the sensor frame, as upstream;
+5. cells (C++ `spinnet_group_cells`): 9 radial x 40 elevation x 80 azimuth cells (KITTI: 9 x 30 x 60), each
+   the first 30 patch points within `voxel_r` (0.04 / 0.3 m) of its centre, as offsets from the centre in
+   the cell's azimuth frame (upstream sphere_query + var_to_invar, training/spinnet_nets.py);
+   -> the ONNX model -> 32 values, L2-normalised here.
+
+Model contract (checked when a model is opened): one float32 input `(M, cells * samples, 3)` with M dynamic,
+one float32 output `(M, D)`; metadata `fastmac.preprocess = spinnet` and the `spinnet.*` keys of
+`SpinNetParams`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fastmac_exp.descriptors.base import FeatureDescriptor
+from fastmac_exp.descriptors.buffer import (
+    BufferDescriptor,
+    CellTable,
+    CloudState,
+    Described,
+    _core,
+    _session,
+    align_rotations,
+    check_desc_contract,
+    cut_patches,
+    pca_axes,
+)
+from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
+from fastmac_exp.descriptors.patches import keypoints as voxel_keypoints
+from fastmac_exp.descriptors.patches import voxel_down
+from fastmac_exp.errors import InputError
+from fastmac_exp.families import FAMILIES
+
+log = logging.getLogger(__name__)
+
+SHIPPED = {"3dmatch": "models/spinnet_3dmatch.onnx", "kitti": "models/spinnet_kitti.onnx"}
+SAMPLINGS = ("fps", "random")
+# per model: (keypoints a cloud, sampling). Indoors farthest-point sampling covers a fragment evenly (on the 4
+# real indoor pairs 400 FPS keypoints give ~1.5x the inlier ratio of 400 random ones); on a LiDAR scan FPS
+# spends its points on the sparse periphery, and a random subset (denser near the sensor) does better
+MODEL_KEYPOINTS = {"3dmatch": (400, "fps"), "kitti": (1000, "random")}
+
+
+@dataclass(frozen=True)
+class SpinNetParams:
+    """SpinNet's preprocessing (upstream ThreeDMatch/Test/preparation.py, KITTI/Test/test_kitti.py); lengths
+    in metres at scale 1. Stored as `spinnet.<field>` metadata in the model."""
+
+    family: str = "3dmatch"
+    align: str = "pca"  # "pca": the patch normal -> +z (3DMatch) | "none": the sensor frame (KITTI)
+    reference_voxel: float = 0.05  # the pair voxel size at which the published sizes apply
+    downsample: float = 0.01  # the patch cloud's grid (0: the raw cloud)
+    des_r: float = 0.3
+    rad_n: int = 9
+    ele_n: int = 40
+    azi_n: int = 80
+    voxel_r: float = 0.04
+    samples: int = 30
+    patch_points: int = 2048
+
+    def __post_init__(self) -> None:
+        if self.align not in ("pca", "none"):
+            raise InputError(f"spinnet.align must be 'pca' or 'none', got {self.align!r}")
+        if not all(v > 0 for v in (self.reference_voxel, self.des_r, self.voxel_r)) or self.downsample < 0:
+            raise InputError("SpinNet lengths must be positive (downsample >= 0)")
+        if min(self.rad_n, self.ele_n, self.azi_n, self.samples, self.patch_points) < 1:
+            raise InputError("SpinNet counts must be positive")
+        if self.cells > 32767:
+            raise InputError(f"SpinNet grid of {self.cells} cells; at most 32,767")
+
+    @property
+    def cells(self) -> int:
+        return self.rad_n * self.ele_n * self.azi_n
+
+    @property
+    def size(self) -> int:
+        return self.cells * self.samples
+
+    @classmethod
+    def from_metadata(cls, meta: dict, where: str) -> SpinNetParams:
+        values = {}
+        for f in fields(cls):
+            raw = meta.get("spinnet." + f.name)
+            if raw is None:
+                continue
+            try:
+                values[f.name] = type(f.default)(raw)
+            except ValueError as exc:
+                raise InputError(f"model {where}: metadata spinnet.{f.name}={raw!r} is not valid") from exc
+        return cls(**values)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the cells
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Cell centres (float32, metres at scale 1), their azimuth rotations and the candidate table."""
+
+    centres: np.ndarray
+    rotations: np.ndarray
+    r2: np.float32
+    table: CellTable
+
+
+_GRIDS: dict[tuple, Grid] = {}
+_GRIDS_LOCK = threading.Lock()
+
+
+def cell_centres(des_r: float, rad_n: int, azi_n: int, ele_n: int) -> np.ndarray:
+    """(rad_n * ele_n * azi_n, 3) float32 centres, radial-major, then elevation, azimuth (upstream
+    get_voxel_coordinate: shells (i + 1/2) / rad_n x des_r, elevation (j + 1/2) pi / ele_n, azimuth
+    (k + 1/2) 2 pi / azi_n)."""
+    beta = np.linspace(0, np.pi, ele_n, endpoint=False) + np.pi / ele_n / 2
+    alpha = np.linspace(0, 2 * np.pi, azi_n, endpoint=False) + np.pi / azi_n
+    b, a = np.meshgrid(beta, alpha, indexing="ij")
+    unit = np.stack([np.sin(b) * np.cos(a), np.sin(b) * np.sin(a), np.cos(b)], -1) * des_r
+    shells = np.arange(rad_n) / rad_n + 1 / (2 * rad_n)
+    return (shells[:, None, None, None] * unit[None]).reshape(-1, 3).astype(np.float32)
+
+
+def azimuth_rotations(azi_n: int) -> np.ndarray:
+    """(azi_n, 3, 3) float32: the rotation by -k 2 pi / azi_n about z (upstream var_to_invar)."""
+    t = -np.arange(azi_n) * 2 * np.pi / azi_n
+    out = np.zeros((azi_n, 3, 3))
+    out[:, 0, 0], out[:, 0, 1] = np.cos(t), -np.sin(t)
+    out[:, 1, 0], out[:, 1, 1] = np.sin(t), np.cos(t)
+    out[:, 2, 2] = 1.0
+    return out.astype(np.float32)
+
+
+def grid_for(p: SpinNetParams) -> Grid:
+    key = (p.des_r, p.rad_n, p.ele_n, p.azi_n, p.voxel_r)
+    with _GRIDS_LOCK:
+        if key not in _GRIDS:
+            centres = cell_centres(p.des_r, p.rad_n, p.azi_n, p.ele_n)
+            table = CellTable(centres.astype(np.float64) / p.des_r, p.voxel_r / p.des_r, grid=24)
+            r = np.float32(p.voxel_r)
+            _GRIDS[key] = Grid(centres, azimuth_rotations(p.azi_n), np.float32(r * r), table)
+        return _GRIDS[key]
+
+
+def group_cells(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
+    """Aligned patches `(M, P, 3)` (offsets from the keypoint, metres at scale 1) -> the model input
+    `(M, cells * samples, 3)` float32 (module docstring, step 5). Needs the C++ core."""
+    g = grid_for(p)
+    core = _core()
+    if core is None or not hasattr(core, "spinnet_group_cells"):
+        return group_cells_numpy(aligned, p)
+    return core.spinnet_group_cells(
+        np.ascontiguousarray(aligned, dtype=np.float32),
+        g.centres,
+        float(g.r2),
+        g.table.ptr,
+        g.table.cells,
+        g.table.g,
+        float(np.float32(1.0 / p.des_r)),
+        float(np.float32(1.0 / g.table.h)),
+        p.samples,
+        g.rotations,
+    )
+
+
+def group_cells_numpy(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
+    """`group_cells` in numpy, brute force over the cells (the reference of the C++ kernel; slow)."""
+    g = grid_for(p)
+    pts = np.ascontiguousarray(aligned, dtype=np.float32)
+    m = len(pts)
+    ns, ncell = p.samples, p.cells
+    out = np.zeros((m, ncell, ns, 3), dtype=np.float32)
+    rot = g.rotations[np.arange(ncell) % p.azi_n]  # (cells, 3, 3)
+    for j in range(m):
+        for lo in range(0, ncell, 1024):
+            cc = slice(lo, min(lo + 1024, ncell))
+            d = pts[j][None, :, :] - g.centres[cc, None, :]  # (cells, P, 3)
+            d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+            hit = d2 < g.r2
+            rank = np.cumsum(hit, axis=1) - 1
+            c, s = np.nonzero(hit & (rank < ns))
+            out[j, lo + c, rank[c, s]] = np.einsum("cij,cj->ci", rot[lo + c], d[c, s])
+            empty = np.flatnonzero(~hit.any(axis=1))
+            out[j, lo + empty, 0] = np.einsum("cij,cj->ci", rot[lo + empty], d[empty, 0])
+    return out.reshape(m, ncell * ns, 3)
+
+
+def farthest_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Rows of `n` of `points` by farthest-point sampling from a seeded random start (in sampling order: a
+    prefix of the result is the sampling of fewer points)."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = min(int(n), len(pts))
+    out = np.empty(n, dtype=np.int64)
+    if n == 0:
+        return out
+    out[0] = np.random.default_rng(seed).integers(len(pts))
+    dist = np.full(len(pts), np.inf)
+    for i in range(1, n):
+        delta = pts - pts[out[i - 1]]
+        np.minimum(dist, np.einsum("ij,ij->i", delta, delta), out=dist)
+        out[i] = int(np.argmax(dist))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# the model
+
+
+class SpinNetModel:
+    """One family's SpinNet session, its parameters and contract (the attributes BufferDescriptor.describe
+    reads: desc_path, params, ref, output_dim)."""
+
+    ref = None
+    ref_path = None
+
+    def __init__(self, path: Path, threads: int, providers="auto") -> None:
+        self.desc_path = path
+        self.desc = _session(path, threads, providers)
+        meta = self.desc.get_modelmeta().custom_metadata_map or {}
+        if meta.get("fastmac.preprocess") != "spinnet":
+            raise InputError(
+                f"model {path} is not a SpinNet model (its metadata lacks fastmac.preprocess=spinnet)"
+            )
+        self.params = SpinNetParams.from_metadata(meta, str(path))
+        self.metadata = dict(meta)
+        self.input_name, self.output_dim = check_desc_contract(self.desc, path, self.params)
+
+
+class SpinNetDescriptor(BufferDescriptor):
+    """SpinNet's published descriptor through onnxruntime (module docstring).
+
+    `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
+    as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
+    many keypoints a cloud (None: the model's default, 400 indoors / 1,000 for KITTI; 0 = every voxel
+    keypoint); each costs ~0.05-0.15 s of one CPU core (training/SPINNET_MODEL_CARD.md). `sampling`: how
+    they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None: the model's, fps
+    indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
+    model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,
+    `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is
+    described once), `axis` (None: the model's; "pca" or "none" to override)."""
+
+    name = "spinnet"
+    default_graph_key = "spinnet"
+    cost_note = (
+        "SpinNet describes 400 keypoints a 3DMatch fragment (~40-60 s on a CPU core) and 1,000 a KITTI scan "
+        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache "
+        "is not described again"
+    )
+
+    def __init__(
+        self,
+        model: str = "auto",
+        model_3dmatch: str = SHIPPED["3dmatch"],
+        model_kitti: str = SHIPPED["kitti"],
+        keypoints: int | None = None,
+        sampling: str | None = None,
+        downsample: float | None = None,
+        voxel_size: float | None = None,
+        scale: float | None = None,
+        max_correspondences: int = 5000,
+        mutual: bool = False,
+        threads: int = 1,
+        batch_size: int = 8,
+        seed: int = 0,
+        progress: bool = True,
+        axis: str | None = None,
+        cache_clouds: int = 8,
+        execution_providers="auto",
+        graph_key: str | None = None,
+    ) -> None:
+        FeatureDescriptor.__init__(self, graph_key)
+        if keypoints is not None and keypoints < 0:
+            raise InputError(f"spinnet keypoints must be >= 0 (0 = every voxel keypoint), got {keypoints}")
+        if sampling is not None and sampling not in SAMPLINGS:
+            raise InputError(f"spinnet sampling must be one of {SAMPLINGS}, got {sampling!r}")
+        if downsample is not None and downsample < 0:
+            raise InputError(f"spinnet downsample must be >= 0 or None (the model's), got {downsample}")
+        if cache_clouds < 0:
+            raise InputError(f"spinnet cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
+        if voxel_size is not None and not voxel_size > 0:
+            raise InputError(f"spinnet voxel_size must be positive or None (the pair's), got {voxel_size}")
+        if scale is not None and not scale > 0:
+            raise InputError(f"spinnet scale must be positive or None (from the voxel size), got {scale}")
+        if max_correspondences < 0:
+            raise InputError(f"max_correspondences must be >= 0 (0 = no cap), got {max_correspondences}")
+        if threads < 0 or batch_size < 1:
+            raise InputError(f"threads must be >= 0 and batch_size >= 1, got {threads}, {batch_size}")
+        if axis not in (None, "pca", "none"):
+            raise InputError(f"spinnet axis must be null, 'pca' or 'none', got {axis!r}")
+        self.model = str(model)
+        self.model_3dmatch = str(model_3dmatch)
+        self.model_kitti = str(model_kitti)
+        self.precision = "float32"
+        self.max_keypoints = None if keypoints is None else int(keypoints)
+        self.sampling = sampling
+        self.downsample = downsample
+        self.voxel_size = voxel_size
+        self.scale = scale
+        self.max_correspondences = int(max_correspondences)
+        self.mutual = bool(mutual)
+        self.threads = int(threads)
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.progress = bool(progress)
+        self.axis = axis
+        self.cache_clouds = int(cache_clouds)
+        self.execution_providers = execution_providers
+        self._models: dict[str, SpinNetModel] = {}
+        self._states: OrderedDict[tuple, CloudState] = OrderedDict()
+        self._described: OrderedDict[tuple, Described] = OrderedDict()
+        self.last_timings: dict[str, float] = {}
+        self.timings_log: list[dict] = []
+        if self.model != "auto":
+            self.load(self.model)
+
+    def model_path(self, which: str) -> Path:
+        return resolve_model_path(
+            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
+        )
+
+    def load(self, which: str) -> SpinNetModel:
+        if which not in self._models:
+            self._models[which] = SpinNetModel(self.model_path(which), self.threads, self.execution_providers)
+        return self._models[which]
+
+    def model_for(self, family: str) -> SpinNetModel:
+        if self.model != "auto":
+            return self.load(self.model)
+        if family not in FAMILIES:
+            raise InputError(
+                f"descriptor=spinnet: no SpinNet model for family {family!r}; set descriptor.model"
+            )
+        return self.load(FAMILIES[family].buffer_model)  # the learned models' training set (3dmatch | kitti)
+
+    # -- keypoints: a seeded subset of the voxel keypoints
+
+    def keypoints(self, points, voxel, what="cloud", family="3dmatch"):
+        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 400 for the
+        3DMatch model, 1,000 for KITTI's), by `sampling` (None: the model's, fps / random)."""
+        pts, kp = voxel_keypoints(points, voxel, what)
+        which = (
+            self.model
+            if self.model != "auto"
+            else FAMILIES[family].buffer_model
+            if family in FAMILIES
+            else ""
+        )
+        n_default, how_default = MODEL_KEYPOINTS.get(which, MODEL_KEYPOINTS["3dmatch"])
+        n = self.max_keypoints if self.max_keypoints is not None else n_default
+        how = self.sampling or how_default
+        if n and len(kp) > n:
+            if how == "fps":
+                kp = kp[farthest_points(kp, n, self.seed)]
+            else:
+                kp = kp[np.sort(np.random.default_rng(self.seed).choice(len(kp), size=n, replace=False))]
+        return pts, kp
+
+    # -- description (BufferDescriptor.describe keeps the per-cloud caches)
+
+    def _state(self, model, how: str, pts: np.ndarray, key: tuple):
+        state = self._states.get(key)
+        if state is not None:
+            self._states.move_to_end(key)
+            return state, {"clouds_s": 0.0}
+        t0 = time.perf_counter()
+        down = model.params.downsample if self.downsample is None else self.downsample
+        cloud = voxel_down(pts, down) if down > 0 else np.asarray(pts, dtype=np.float64)
+        cloud = cloud[np.random.default_rng(self.seed).permutation(len(cloud))]
+        state = CloudState(cloud, cKDTree(cloud), None, None)
+        self._remember(self._states, key, state)
+        return state, {"clouds_s": time.perf_counter() - t0}
+
+    def patches(self, model, state: CloudState, kp: np.ndarray, how: str) -> np.ndarray:
+        """Aligned patches `(M, patch_points, 3)` float64 of the keypoints `kp` (steps 3-4)."""
+        p = model.params
+        patch = cut_patches(state.cloud, state.tree, kp, p.des_r, p.patch_points, workers=1) - kp[:, None, :]
+        if how == "pca":
+            patch = patch @ align_rotations(pca_axes(patch, kp))
+        return patch
+
+    def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
+        from tqdm import tqdm
+
+        p = model.params
+        sel = kp[todo]
+        m, bs = len(sel), self.batch_size
+        bar = tqdm(
+            total=m, desc=f"SpinNet {what}", unit="kp", leave=False, disable=not self.progress or m < bs * 4
+        )
+        t_prep = t_run = 0.0
+        for s in range(0, m, bs):
+            ta = time.perf_counter()
+            x = group_cells(self.patches(model, state, sel[s : s + bs], how), p)
+            tb = time.perf_counter()
+            y = model.desc.run(None, {model.input_name: x})[0]
+            t_prep += tb - ta
+            t_run += time.perf_counter() - tb
+            if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
+                raise InputError(
+                    f"SpinNet model {model.desc_path} returned {y.shape} for {len(x)} patches, expected "
+                    f"({len(x)}, {entry.desc.shape[1]})"
+                )
+            norm = np.linalg.norm(y, axis=1, keepdims=True)
+            entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
+            entry.done[todo[s : s + len(y)]] = True
+            bar.update(len(y))
+        bar.close()
+        return {"patches_s": t_prep, "network_s": t_run}
+
+
+__all__ = ["SpinNetDescriptor", "SpinNetParams", "azimuth_rotations", "cell_centres", "group_cells"]

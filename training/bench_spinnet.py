@@ -1,0 +1,106 @@
+"""SpinNet's cost on a CPU and its rotation invariance, for training/SPINNET_MODEL_CARD.md.
+
+    cd /work/main && PYTHONPATH=. python -m training.bench_spinnet --json training/spinnet_speed.json
+
+Describes a real 3DMatch fragment (redkitchen cloud_bin_0, 400 farthest-point keypoints, the default) and a
+KITTI scan (seq 00 frame 94, 1,000 random keypoints, the default) from an empty cache with onnxruntime on
+`--threads` threads: seconds a cloud, per keypoint, and the split between the patches + C++ grouping and
+the network. Then rotation invariance: the fragment and 40 of its keypoints rotated about the sensor; the
+mean cosine between a keypoint's descriptors before and after, and how often the rotated keypoint's
+descriptor is the nearest of the 40. Needs ../shared/data; a shared machine only makes it slower.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from fastmac_exp.descriptors.patches import voxel_down  # noqa: E402
+from fastmac_exp.descriptors.spinnet import SpinNetDescriptor, grid_for  # noqa: E402
+from fastmac_exp.io import read_points  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+CLOUDS = {
+    "3dmatch": (DATA / "teaser_3dmatch_redkitchen" / "cloud_bin_0.ply", 0.05),
+    "kitti": (DATA / "kitti_seq00_scancontext" / "000094.bin", 0.3),
+}
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def speed(family: str, threads: int) -> dict:
+    path, voxel = CLOUDS[family]
+    pts = np.asarray(read_points(path), dtype=np.float64)
+    d = SpinNetDescriptor(threads=threads, progress=False)
+    model = d.load(family)
+    t0 = time.perf_counter()
+    grid_for(model.params)
+    t_grid = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    kp, _ = d.features(pts, voxel, family=family)
+    total = time.perf_counter() - t0
+    t = d.last_timings
+    n = len(kp)
+    return {
+        "cloud": path.name,
+        "points": len(pts),
+        "keypoints": n,
+        "cell_table_s_once_a_process": round(t_grid, 2),
+        "seconds_a_cloud": round(total, 2),
+        "seconds_a_keypoint": round(total / n, 4),
+        "network_s_a_keypoint": round(t["network_s"] / n, 4),
+        "patches_and_grouping_s_a_keypoint": round(t["patches_s"] / n, 4),
+    }
+
+
+def rotation(threads: int, n: int = 40) -> dict:
+    path, voxel = CLOUDS["3dmatch"]
+    pts = np.asarray(read_points(path), dtype=np.float64)
+    kp = voxel_down(pts, voxel)
+    kp = kp[np.random.default_rng(5).choice(len(kp), n, replace=False)]
+    rot = random_rotation(np.random.default_rng(21))
+    d = SpinNetDescriptor(threads=threads, progress=False)
+    model = d.load("3dmatch")
+    a = d.describe(model, pts, kp, 1.0)
+    b = d.describe(model, pts @ rot.T, kp @ rot.T, 1.0)
+    return {
+        "keypoints": n,
+        "rotation_deg": round(float(np.degrees(np.arccos((np.trace(rot) - 1) / 2))), 1),
+        "mean_cosine": round(float(np.mean(np.sum(a * b, axis=1))), 4),
+        "top1": round(float(np.mean(np.argmax(b @ a.T, axis=1) == np.arange(n))), 4),
+    }
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    out = {
+        "threads": args.threads,
+        "load_average_at_start": os.getloadavg()[0],
+        "cpus": os.cpu_count(),
+        "speed": {fam: speed(fam, args.threads) for fam in CLOUDS},
+        "rotation_invariance": rotation(args.threads),
+    }
+    print(json.dumps(out, indent=1))
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
