@@ -905,8 +905,17 @@ def bench_turboreg(args) -> list[dict]:
         cells = " ".join(f"{med[m]:8.1f} ({'y' if ok[m] else 'n'})" for m in methods)
         print(f"  {name[:38]:38s} {len(corr):5d} | {cells} | {med['mac'] / med['turboreg']:6.2f} | "
               f"{stages:>27s} | {mb:5.0f}")  # fmt: skip
-        rows.append({"pair": name, "family": fam, "n": len(corr), "ms": med, "success": ok, "turboreg_mb": mb,
-                     "turboreg_stages": {s: tr.get(s) for s in ("graph", "pivots", "hypotheses", "pose")}})
+        rows.append(
+            {
+                "pair": name,
+                "family": fam,
+                "n": len(corr),
+                "ms": med,
+                "success": ok,
+                "turboreg_mb": mb,
+                "turboreg_stages": {s: tr.get(s) for s in ("graph", "pivots", "hypotheses", "pose")},
+            }
+        )
         sys.stdout.flush()
     indoor = [r["ms"]["turboreg"] for r in rows if r["family"] != "kitti" and r["n"] <= 10_000]
     outdoor = [r["ms"]["turboreg"] for r in rows if r["family"] == "kitti"]

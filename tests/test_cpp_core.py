@@ -684,9 +684,10 @@ def test_the_cores_default_budgets_are_the_configs():
 
 def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
     """Cores of >= 512 nodes (the 1,000 FastMAC@20 keeps of a dense KITTI pair, the near-cliques
-    samples=5000 keeps of 200,000 correspondences) run MAC's products from bfloat16 operands with float32 sums where the CPU has AVX512_BF16: G within bfloat16's
-    rounding of dense numpy (each term's two factors rounded stochastically to 8 significant bits, so that
-    the errors average out over the ~1,000 terms of a sum), and MAC's pose that of the float64 products."""
+    samples=5000 keeps of 200,000 correspondences) run MAC's products from bfloat16 operands with float32
+    sums where the CPU has AVX512_BF16: G within bfloat16's rounding of dense numpy (each term's two
+    factors rounded stochastically to 8 significant bits, so that the errors average out over the ~1,000
+    terms of a sum), and MAC's pose that of the float64 products."""
     src, tgt, r, t = clustered(2400, 0.5, 0.004, 5)
     gp = ("quadratic", 0.06, 0.1, 0.8)
     w = dense_w(src, tgt, *gp)
@@ -703,10 +704,12 @@ def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
     assert gap["double"].max() < 1e-12 and 1e-12 < gap["single"].max() < 2e-6
     if core.bf16_cores():
         signed = out["auto"]["g"][pos] / g[pos] - 1
-        # measured at 4,400 nodes: max 2.8e-4, median 2.5e-5, mean 2.7e-7 (rounding to nearest: median 3.9e-4, all of
-        # one sign, the weights crowding below 1; hence the stochastic rounding)
+        # measured at 4,400 nodes: max 2.8e-4, median 2.5e-5, mean 2.7e-7 (rounding to nearest: median
+        # 3.9e-4, all of one sign, the weights crowding below 1; hence the stochastic rounding)
         assert 2e-6 < gap["auto"].max() < 1e-3 and np.median(gap["auto"]) < 1e-4, (
-            gap["auto"].max(), np.median(gap["auto"]))
+            gap["auto"].max(),
+            np.median(gap["auto"]),
+        )
         assert abs(signed.mean()) < 1e-5, signed.mean()
     else:  # float32 where the CPU lacks bfloat16 dot products
         np.testing.assert_array_equal(out["auto"]["g"], out["single"]["g"])

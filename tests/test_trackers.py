@@ -182,7 +182,8 @@ def test_rerun_per_run_recording(tmp_path, strict_rerun):
     text = text[0] if isinstance(text, list) else text
     rows = [line.split("|")[1:3] for line in text.splitlines()[2:]]
     assert [r[0].strip() for r in rows] == list(STAGE_BARS) and "describe" not in text
-    assert np.allclose([float(r[1]) for r in rows], [outcomes[0].row[f"t_{s}_ms"] for s in STAGE_BARS], atol=0.05)
+    want = [outcomes[0].row[f"t_{s}_ms"] for s in STAGE_BARS]
+    assert np.allclose([float(r[1]) for r in rows], want, atol=0.05)
     assert text.count("█") > 0
     from rerun.chunk import RrdReader
 

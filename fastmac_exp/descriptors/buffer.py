@@ -47,7 +47,7 @@ import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +56,7 @@ from scipy.spatial import cKDTree
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
 from fastmac_exp.descriptors.onnx_descriptor import open_session, resolve_model_path
-from fastmac_exp.descriptors.patches import MIN_POINTS, keypoints, voxel_down
+from fastmac_exp.descriptors.patches import MIN_POINTS, CylinderGrid, keypoints, voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 from fastmac_exp.types import Correspondences, Pair
@@ -88,9 +88,11 @@ REF_INPUTS = (
 
 
 @dataclass(frozen=True)
-class BufferParams:
+class BufferParams(CylinderGrid):
     """BUFFER's preprocessing (upstream ThreeDMatch/config.py, KITTI/config.py); lengths in metres at
     scale 1. Stored as `buffer.<field>` metadata in the Desc model."""
+
+    metadata_prefix = "buffer"
 
     family: str = "3dmatch"
     align: str = "ref"  # "ref": Ref-network axis -> +z | "none": keep the sensor frame (KITTI)
@@ -115,28 +117,6 @@ class BufferParams:
             raise InputError(f"BUFFER lengths must be positive, got {lengths}")
         if min(self.patch_points, self.rad_n, self.ele_n, self.azi_n, self.samples, self.max_points) < 1:
             raise InputError("BUFFER counts must be positive")
-
-    @property
-    def cells(self) -> int:
-        return self.rad_n * self.ele_n * self.azi_n
-
-    @property
-    def size(self) -> int:
-        """K of the Desc input: cells x points a cell."""
-        return self.cells * self.samples
-
-    @classmethod
-    def from_metadata(cls, meta: dict, where: str) -> BufferParams:
-        values = {}
-        for f in fields(cls):
-            raw = meta.get("buffer." + f.name)
-            if raw is None:
-                continue
-            try:
-                values[f.name] = type(f.default)(raw)
-            except ValueError as exc:
-                raise InputError(f"model {where}: metadata buffer.{f.name}={raw!r} is not valid") from exc
-        return cls(**values)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@ the training recipe (training/train.py), so that training and runtime cannot dri
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -197,3 +197,34 @@ def cloud_patches(
     """Keypoints `(M, 3)` float64 and their model input `(M, K, C)` float32 for one cloud."""
     pts, kp = keypoints(points, voxel, what)
     return kp, extract_patches(kp, support_clouds(pts, kp, voxel, params), voxel, params)
+
+
+class CylinderGrid:
+    """For the dataclasses of the cylindrical-patch descriptors (BUFFER, SpinNet): their grid of
+    rad_n x ele_n x azi_n cells with `samples` points a cell, and the fields read back from a model's
+    metadata, stored as `<metadata_prefix>.<field>`."""
+
+    metadata_prefix = ""
+
+    @property
+    def cells(self) -> int:
+        return self.rad_n * self.ele_n * self.azi_n
+
+    @property
+    def size(self) -> int:
+        """K of the network's input: cells x points a cell."""
+        return self.cells * self.samples
+
+    @classmethod
+    def from_metadata(cls, meta: dict, where: str):
+        values = {}
+        for f in fields(cls):
+            key = f"{cls.metadata_prefix}.{f.name}"
+            raw = meta.get(key)
+            if raw is None:
+                continue
+            try:
+                values[f.name] = type(f.default)(raw)
+            except ValueError as exc:
+                raise InputError(f"model {where}: metadata {key}={raw!r} is not valid") from exc
+        return cls(**values)

@@ -36,7 +36,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -56,8 +56,8 @@ from fastmac_exp.descriptors.buffer import (
     pca_axes,
 )
 from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
+from fastmac_exp.descriptors.patches import CylinderGrid, voxel_down
 from fastmac_exp.descriptors.patches import keypoints as voxel_keypoints
-from fastmac_exp.descriptors.patches import voxel_down
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 
@@ -72,9 +72,11 @@ MODEL_KEYPOINTS = {"3dmatch": (400, "fps"), "kitti": (1000, "random")}
 
 
 @dataclass(frozen=True)
-class SpinNetParams:
+class SpinNetParams(CylinderGrid):
     """SpinNet's preprocessing (upstream ThreeDMatch/Test/preparation.py, KITTI/Test/test_kitti.py); lengths
     in metres at scale 1. Stored as `spinnet.<field>` metadata in the model."""
+
+    metadata_prefix = "spinnet"
 
     family: str = "3dmatch"
     align: str = "pca"  # "pca": the patch normal -> +z (3DMatch) | "none": the sensor frame (KITTI)
@@ -97,27 +99,6 @@ class SpinNetParams:
             raise InputError("SpinNet counts must be positive")
         if self.cells > 32767:
             raise InputError(f"SpinNet grid of {self.cells} cells; at most 32,767")
-
-    @property
-    def cells(self) -> int:
-        return self.rad_n * self.ele_n * self.azi_n
-
-    @property
-    def size(self) -> int:
-        return self.cells * self.samples
-
-    @classmethod
-    def from_metadata(cls, meta: dict, where: str) -> SpinNetParams:
-        values = {}
-        for f in fields(cls):
-            raw = meta.get("spinnet." + f.name)
-            if raw is None:
-                continue
-            try:
-                values[f.name] = type(f.default)(raw)
-            except ValueError as exc:
-                raise InputError(f"model {where}: metadata spinnet.{f.name}={raw!r} is not valid") from exc
-        return cls(**values)
 
 
 # ----------------------------------------------------------------------------------------------------
