@@ -563,12 +563,33 @@ class BufferDescriptor(FeatureDescriptor):
         super().__init__(graph_key)
         if precision not in PRECISIONS:
             raise InputError(f"buffer precision must be one of {PRECISIONS}, got {precision!r}")
+        if axis not in (None, "ref", "pca", "none"):
+            raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
+        self._set_common(
+            "buffer", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
+            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+        )  # fmt: skip
+        self.model_3dmatch_int8 = str(model_3dmatch_int8)
+        self.model_kitti_int8 = str(model_kitti_int8)
+        self.precision = precision
+        if precision == "int8":
+            self.name = "buffer_int8"
+        self.ref_model = ref_model
+        if self.model != "auto":
+            self.load(self.model)
+
+    def _set_common(
+        self, label, model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
+        threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+    ) -> None:  # fmt: skip
+        """The options and state BUFFER and SpinNet (a subclass) share, checked (`label` names the
+        descriptor in the messages)."""
         if cache_clouds < 0:
-            raise InputError(f"buffer cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
+            raise InputError(f"{label} cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
         if voxel_size is not None and not voxel_size > 0:
-            raise InputError(f"buffer voxel_size must be positive or None (the pair's), got {voxel_size}")
+            raise InputError(f"{label} voxel_size must be positive or None (the pair's), got {voxel_size}")
         if scale is not None and not scale > 0:
-            raise InputError(f"buffer scale must be positive or None (from the voxel size), got {scale}")
+            raise InputError(f"{label} scale must be positive or None (from the voxel size), got {scale}")
         if max_correspondences < 0:
             raise InputError(f"max_correspondences must be >= 0 (0 = no cap), got {max_correspondences}")
         if threads < 0 or batch_size < 1:
@@ -576,12 +597,6 @@ class BufferDescriptor(FeatureDescriptor):
         self.model = str(model)
         self.model_3dmatch = str(model_3dmatch)
         self.model_kitti = str(model_kitti)
-        self.model_3dmatch_int8 = str(model_3dmatch_int8)
-        self.model_kitti_int8 = str(model_kitti_int8)
-        self.precision = precision
-        if precision == "int8":
-            self.name = "buffer_int8"
-        self.ref_model = ref_model
         self.voxel_size = voxel_size
         self.scale = scale
         self.max_correspondences = int(max_correspondences)
@@ -590,18 +605,14 @@ class BufferDescriptor(FeatureDescriptor):
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.progress = bool(progress)
-        if axis not in (None, "ref", "pca", "none"):
-            raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
         self.axis = axis
         self.cache_clouds = int(cache_clouds)
         self.execution_providers = execution_providers
-        self._models: dict[str, BufferModel] = {}
+        self._models: dict = {}
         self._states: OrderedDict[tuple, CloudState] = OrderedDict()
         self._described: OrderedDict[tuple, Described] = OrderedDict()
         self.last_timings: dict[str, float] = {}
         self.timings_log: list[dict] = []  # one entry a described cloud (the last 1000)
-        if self.model != "auto":
-            self.load(self.model)
 
     def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
         state = self.__dict__.copy()

@@ -35,7 +35,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -285,41 +284,16 @@ class SpinNetDescriptor(BufferDescriptor):
             raise InputError(f"spinnet sampling must be one of {SAMPLINGS}, got {sampling!r}")
         if downsample is not None and downsample < 0:
             raise InputError(f"spinnet downsample must be >= 0 or None (the model's), got {downsample}")
-        if cache_clouds < 0:
-            raise InputError(f"spinnet cache_clouds must be >= 0 (0 = no cache), got {cache_clouds}")
-        if voxel_size is not None and not voxel_size > 0:
-            raise InputError(f"spinnet voxel_size must be positive or None (the pair's), got {voxel_size}")
-        if scale is not None and not scale > 0:
-            raise InputError(f"spinnet scale must be positive or None (from the voxel size), got {scale}")
-        if max_correspondences < 0:
-            raise InputError(f"max_correspondences must be >= 0 (0 = no cap), got {max_correspondences}")
-        if threads < 0 or batch_size < 1:
-            raise InputError(f"threads must be >= 0 and batch_size >= 1, got {threads}, {batch_size}")
         if axis not in (None, "pca", "none"):
             raise InputError(f"spinnet axis must be null, 'pca' or 'none', got {axis!r}")
-        self.model = str(model)
-        self.model_3dmatch = str(model_3dmatch)
-        self.model_kitti = str(model_kitti)
+        self._set_common(
+            "spinnet", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
+            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+        )  # fmt: skip
         self.precision = "float32"
         self.max_keypoints = None if keypoints is None else int(keypoints)
         self.sampling = sampling
         self.downsample = downsample
-        self.voxel_size = voxel_size
-        self.scale = scale
-        self.max_correspondences = int(max_correspondences)
-        self.mutual = bool(mutual)
-        self.threads = int(threads)
-        self.batch_size = int(batch_size)
-        self.seed = int(seed)
-        self.progress = bool(progress)
-        self.axis = axis
-        self.cache_clouds = int(cache_clouds)
-        self.execution_providers = execution_providers
-        self._models: dict[str, SpinNetModel] = {}
-        self._states: OrderedDict[tuple, CloudState] = OrderedDict()
-        self._described: OrderedDict[tuple, Described] = OrderedDict()
-        self.last_timings: dict[str, float] = {}
-        self.timings_log: list[dict] = []
         if self.model != "auto":
             self.load(self.model)
 
