@@ -79,23 +79,28 @@ void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints,
     }
 }
 
+// The voxel of the cell table that holds point q (coordinates scaled by to_unit into the unit ball, then
+// shifted by 1 and divided by the voxel size): numpy's astype(int32) truncation, clamped to the grid.
+static inline int64_t cell_voxel(const float *q, float to_unit, float inv_h, int64_t g) {
+    int64_t v[3];
+    for (int d = 0; d < 3; ++d) {
+        const float f = (q[d] * to_unit + 1.0f) * inv_h;
+        const int64_t i = int64_t(int32_t(f));
+        v[d] = std::min<int64_t>(std::max<int64_t>(i, 0), g - 1);
+    }
+    return (v[0] * g + v[1]) * g + v[2];
+}
+
 void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
                         const int64_t *ptr, const int16_t *cells, int64_t g, float inv_h, int64_t ns, float *out) {
     std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
     std::vector<int64_t> count(ncell);
-    const float one = 1.0f;
     for (int64_t j = 0; j < m; ++j) {
         std::fill(count.begin(), count.end(), 0);
         float *o = out + j * ncell * ns * 3;
         for (int64_t s = 0; s < p; ++s) {
             const float *q = pts + (j * p + s) * 3;
-            int64_t v[3];
-            for (int d = 0; d < 3; ++d) {
-                const float f = (q[d] + one) * inv_h;
-                int64_t i = int64_t(int32_t(f));  // numpy's astype(int32): truncation
-                v[d] = std::min<int64_t>(std::max<int64_t>(i, 0), g - 1);
-            }
-            const int64_t vox = (v[0] * g + v[1]) * g + v[2];
+            const int64_t vox = cell_voxel(q, 1.0f, inv_h, g);  // q * 1.0f is q exactly
             for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
                 const int64_t c = cells[t];
                 const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
@@ -115,20 +120,13 @@ void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *ce
                          const float *rot, int64_t azi_n, float *out) {
     std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
     std::vector<int64_t> count(ncell);
-    const float one = 1.0f;
     for (int64_t j = 0; j < m; ++j) {
         std::fill(count.begin(), count.end(), 0);
         float *o = out + j * ncell * ns * 3;
         const float *base = pts + j * p * 3;
         for (int64_t s = 0; s < p; ++s) {
             const float *q = base + s * 3;
-            int64_t v[3];
-            for (int d = 0; d < 3; ++d) {
-                const float f = (q[d] * to_unit + one) * inv_h;
-                int64_t i = int64_t(int32_t(f));
-                v[d] = std::min<int64_t>(std::max<int64_t>(i, 0), g - 1);
-            }
-            const int64_t vox = (v[0] * g + v[1]) * g + v[2];
+            const int64_t vox = cell_voxel(q, to_unit, inv_h, g);
             for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
                 const int64_t c = cells[t];
                 if (count[c] >= ns) continue;
