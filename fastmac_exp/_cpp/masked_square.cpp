@@ -174,6 +174,21 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
     return core;
 }
 
+// Rows r0..r1 of D = V[K, C] scattered into `dense` (rows of ld entries, zero where V has none), the first
+// step of both packings.
+template <class T>
+void scatter_core_rows(const Csr &V, const std::vector<double> &vals, const Core &core, int64_t r0, int64_t r1,
+                       int64_t ld, T *dense) {
+    for (int64_t r = r0; r < r1; ++r) {
+        const int32_t k = core.rows[r];
+        T *dr = dense + (r - r0) * ld;
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
+            const int64_t c = core.pos[V.col[p]];
+            if (c >= 0) dr[c] = (T)vals[p];
+        }
+    }
+}
+
 // Blocked as in BLIS: a block of kc rows of D and nc columns, whose packed B part (kc x nc) stays in
 // L2 while a thread runs over its row panels of P; for each row panel the A micro-panel (kc x mr) stays
 // in L1 across the block's column panels. Threads take groups of consecutive row panels of about equal
@@ -292,14 +307,7 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
         int64_t lo, hi;
         while (chunks.next(lo, hi)) {
             const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
-            for (int64_t r = r0; r < r1; ++r) {
-                const int32_t k = core.rows[r];
-                T *dr = dense.data() + (r - r0) * ld;
-                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
-                    const int64_t c = core.pos[V.col[p]];
-                    if (c >= 0) dr[c] = (T)vals[p];
-                }
-            }
+            scatter_core_rows(V, vals, core, r0, r1, ld, dense.data());
             for (int64_t ip = 0; ip < n_ip; ++ip) {
                 const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
                 T *dst = A.data() + ((size_t)ip * nk + r0) * mr;
@@ -351,14 +359,7 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
         int64_t lo, hi;
         while (chunks.next(lo, hi)) {
             const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
-            for (int64_t r = r0; r < r1; ++r) {
-                const int32_t k = core.rows[r];
-                float *dr = dense.data() + (r - r0) * ld;
-                for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
-                    const int64_t c = core.pos[V.col[p]];
-                    if (c >= 0) dr[c] = (float)vals[p];
-                }
-            }
+            scatter_core_rows(V, vals, core, r0, r1, ld, dense.data());
             for (int64_t r = r0; r < r1; ++r) {
                 const float *dr = dense.data() + (r - r0) * ld;
                 const int64_t half = r & 1, r2 = r / 2;
