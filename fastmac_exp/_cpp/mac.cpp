@@ -353,14 +353,7 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         const double s = mae_score(pose, src, tgt, n, tau, e.data());
         if (s < prev) break;
         prev = s;
-        inl.clear();
-        wts.clear();
-        for (int64_t i = 0; i < n; ++i)
-            if (e[i] < tau) {
-                inl.push_back((int32_t)i);
-                const double r = e[i] / tau;
-                wts.push_back(1.0 / (1.0 + r * r));
-            }
+        weighted_inliers(e.data(), n, tau, inl, wts);
         if (inl.size() < 3) break;
         pose = kabsch(src, tgt, inl.data(), (int64_t)inl.size(), wts.data());
     }

@@ -273,6 +273,9 @@ enum class Metric { Inliers, Mae, Mse };
 
 // MAE score (spec 5.2) over all n correspondences; e (optional, size n) receives the residuals.
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e);
+// The refinements' inlier set (MAC's and TurboReg's): every i with e[i] < tau, in order, with the weight
+// 1 / (1 + (e_i / tau)^2); idx and w are cleared first.
+void weighted_inliers(const double *e, int64_t n, double tau, std::vector<int32_t> &idx, std::vector<double> &w);
 
 // The same score, fast: residuals are screened in float32 (centred coordinates, a conservative
 // rounding margin; SIMD kernels picked at run time) and only the rows that can be inliers are

@@ -172,6 +172,17 @@ Pose kabsch_weighted(const double *src, const double *tgt, const int32_t *idx, i
     return T;
 }
 
+void weighted_inliers(const double *e, int64_t n, double tau, std::vector<int32_t> &idx, std::vector<double> &w) {
+    idx.clear();
+    w.clear();
+    for (int64_t i = 0; i < n; ++i)
+        if (e[i] < tau) {
+            idx.push_back((int32_t)i);
+            const double r = e[i] / tau;
+            w.push_back(1.0 / (1.0 + r * r));
+        }
+}
+
 double mae_score(const Pose &T, const double *src, const double *tgt, int64_t n, double tau, double *e) {
     const double *R = T.R, *t = T.t;
     double score = 0.0;

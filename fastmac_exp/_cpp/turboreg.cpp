@@ -115,14 +115,7 @@ Pose post_refinement(Pose T, const double *src, const double *tgt, int64_t n, do
     *rounds = 0;
     for (int it = 0; it < iters; ++it) {
         residuals(T, src, tgt, n, e);
-        idx.clear();
-        w.clear();
-        for (int64_t i = 0; i < n; ++i)
-            if (e[i] < tau) {
-                idx.push_back((int32_t)i);
-                const double r = e[i] / tau;
-                w.push_back(1.0 / (1.0 + r * r));
-            }
+        weighted_inliers(e.data(), n, tau, idx, w);
         const int64_t count = (int64_t)idx.size();
         if (count == previous) break;
         previous = count;
