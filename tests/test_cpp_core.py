@@ -291,6 +291,22 @@ def test_graph_signals_equal_dense_formula(self_loops, kernel, thr):
     assert out.n_edges == int((np.triu(w, 1) > 0).sum())
 
 
+def test_second_order_mirror_in_blocks_equals_dense_formula():
+    """A graph of > 2^15 edges: the second-order values are mirrored to the lower entries in parallel row
+    blocks; any thread count gives the serial values, which are the dense formula's."""
+    src, tgt, _, _ = clustered(700, 0.5, 0.005, 11)
+    gp = GraphParams("quadratic", 0.05, 0.1, 0.01)
+    w = dense_w(src, tgt, "quadratic", 0.05, 0.1, 0.01)
+    assert (np.triu(w, 1) > 0).sum() > 2**15
+    s, f, _ = dense_signals(w, False)
+    one = cpp.graph_signals(src, tgt, gp, self_loops=False, single=False, num_threads=1)
+    two = cpp.graph_signals(src, tgt, gp, self_loops=False, single=False, num_threads=2)
+    np.testing.assert_array_equal(one.degree, two.degree)
+    np.testing.assert_array_equal(one.highpass, two.highpass)
+    np.testing.assert_allclose(one.degree, s, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(one.highpass, f, rtol=1e-9, atol=1e-7 * np.abs(s).max() ** 2)
+
+
 def test_graph_signals_isolated_nodes():
     # no edges at all: with self-loops s = 1, f = 0, l = 2; without, everything is 0
     src = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]], float)

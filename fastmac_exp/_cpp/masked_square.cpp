@@ -608,15 +608,38 @@ std::vector<double> forward_products(const Csr &V, const std::vector<double> &va
 }
 
 // Each edge was computed at one of its two entries (done): copy it to the other. Row j's lower part is
-// ordered by i, so a cursor per row finds the mirror of every upper entry.
-void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done) {
-    std::vector<int64_t> cursor(V.ptr.begin(), V.ptr.end() - 1);
-    for (int64_t i = 0; i < V.n; ++i)
+// ordered by i, so a cursor per row finds the mirror of every upper entry. Blocks of rows run in parallel
+// (distinct edges, distinct entries): a block's cursors start where the rows before it left them, the
+// first column >= the block's first row (one binary search per row and block).
+void mirror_block(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int64_t i0, int64_t i1) {
+    std::vector<int64_t> cursor(V.n);
+    for (int64_t j = 0; j < V.n; ++j) {
+        const int32_t *b = V.col.data() + V.ptr[j], *e = V.col.data() + V.upper[j];
+        cursor[j] = std::lower_bound(b, e, (int32_t)i0) - V.col.data();
+    }
+    for (int64_t i = i0; i < i1; ++i)
         for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) {
             const int64_t q = cursor[V.col[p]]++;
             if (done[p]) S[q] = S[p];
             else S[p] = S[q];
         }
+}
+
+void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int nthreads) {
+    const int64_t n = V.n, half = V.nnz() / 2;
+    // ~4 blocks a thread of about equal upper entries, each of >= 2^14 edges and >= 4 n (a block's set-up
+    // is n binary searches)
+    const int64_t blocks = std::max<int64_t>(
+        1, std::min({(int64_t)4 * std::max(nthreads, 1), half >> 14, half / std::max<int64_t>(4 * n, 1)}));
+    std::vector<int64_t> start{0};
+    int64_t seen = 0;
+    for (int64_t i = 0; i < n; ++i) {
+        seen += V.ptr[i + 1] - V.upper[i];
+        if (seen * blocks >= half * (int64_t)start.size() && (int64_t)start.size() < blocks) start.push_back(i + 1);
+    }
+    if (start.back() != n) start.push_back(n);
+    parallel_for(0, (int64_t)start.size() - 1, blocks > 1 ? nthreads : 1, 1,
+                 [&](int64_t b, int) { mirror_block(V, S, done, start[b], start[b + 1]); });
 }
 
 // The listing pays where the entries outside the core (12 bytes each for the gathers) outgrow a
@@ -694,7 +717,7 @@ std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_onl
         std::vector<uint8_t> done(V.nnz(), 0);
         for (int64_t i = 0; i < n; ++i)
             for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) done[p] = 1;
-        mirror_entries(V, S, done);
+        mirror_entries(V, S, done, nthreads);
     }
     return S;
 }
@@ -772,7 +795,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
                 }
             }
         });
-        mirror_entries(V, S, done);
+        mirror_entries(V, S, done, nthreads);
         return S;
     }
     DynamicRange rows(0, n, 8);
@@ -823,7 +846,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         }
     });
     ctrl_c.throw_if_hit();
-    mirror_entries(V, S, done);
+    mirror_entries(V, S, done, nthreads);
     return S;
 }
 
