@@ -52,16 +52,28 @@ constexpr int64_t kL2Bytes = 384 * 1024;  // the packed B block kept in L2 (kc x
 constexpr int64_t kSuper = 64;  // core rows one thread takes at a time in the pass over the nodes outside K
 
 // An array on malloc's memory, not value-initialised (std::vector would write every byte once more):
-// zeroed from calloc (with the module's malloc setting, memory.cpp, a large one reuses the pages of the
-// previous call) or left uninitialised. (Transparent huge pages for the triangle listing's arrays, tried:
+// zeroed by the threads or left uninitialised (with the module's malloc setting, memory.cpp, a large one
+// reuses the pages of the previous call). (Transparent huge pages for the triangle listing's arrays, tried:
 // no faster on the 50,000-correspondence graphs.)
 template <class T>
 class Array {
   public:
     Array() = default;
-    static Array zeroed(size_t n) { return Array(static_cast<T *>(std::calloc(std::max<size_t>(n, 1), sizeof(T)))); }
     static Array uninitialised(size_t n) {
         return Array(static_cast<T *>(std::malloc(std::max<size_t>(n, 1) * sizeof(T))));
+    }
+    // Zeroed by the threads, for the dense cores' operands and products: calloc's fresh pages are the
+    // shared zero page until written, and the products read before they write, so each page took a
+    // copy-on-write fault with a TLB shootdown (~6 % of MAC on the 5,000-node near-clique), one thread.
+    static Array zeroed_parallel(size_t n, int nthreads) {
+        Array a = uninitialised(n);
+        constexpr int64_t kSlice = int64_t(1) << 16;  // elements a task
+        const int64_t slices = ((int64_t)n + kSlice - 1) / kSlice;
+        parallel_for(0, slices, slices > 16 ? nthreads : 1, 4, [&](int64_t k, int) {
+            const int64_t lo = k * kSlice, hi = std::min<int64_t>((int64_t)n, lo + kSlice);
+            std::memset(static_cast<void *>(a.data() + lo), 0, (size_t)(hi - lo) * sizeof(T));
+        });
+        return a;
     }
     T *data() { return p_.get(); }
     const T *data() const { return p_.get(); }
@@ -296,8 +308,9 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;  // row panels (mr wide), column panels (nr)
     // D = V[K, C] packed twice: A[ip][r][t] = D[r][ip * mr + t] (the broadcast operand) and
     // B[jp][r][u] = D[r][jp * nr + u] (the vector operand); calloc's zeros pad the last panels.
-    Array<T> A = Array<T>::zeroed((size_t)n_ip * nk * mr), B = Array<T>::zeroed((size_t)n_jp * nk * nr),
-             P = Array<T>::zeroed((size_t)n_ip * mr * ld);
+    Array<T> A = Array<T>::zeroed_parallel((size_t)n_ip * nk * mr, nthreads),
+             B = Array<T>::zeroed_parallel((size_t)n_jp * nk * nr, nthreads),
+             P = Array<T>::zeroed_parallel((size_t)n_ip * mr * ld, nthreads);
     // A chunk of rows at a time: scattered into a dense block (rows of ld entries, cache-local writes),
     // then copied panel by panel (contiguous runs of mr or nr entries).
     constexpr int64_t kChunk = 32;
@@ -347,9 +360,9 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
     const int64_t m = core.m, nk = (int64_t)core.rows.size(), nk2 = (nk + 1) / 2;
     const int64_t mr = tile.mr, nr = tile.nr;
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;
-    Array<uint32_t> A = Array<uint32_t>::zeroed((size_t)n_ip * nk2 * mr),
-                    B = Array<uint32_t>::zeroed((size_t)n_jp * nk2 * nr);
-    Array<float> P = Array<float>::zeroed((size_t)n_ip * mr * ld);
+    Array<uint32_t> A = Array<uint32_t>::zeroed_parallel((size_t)n_ip * nk2 * mr, nthreads),
+                    B = Array<uint32_t>::zeroed_parallel((size_t)n_jp * nk2 * nr, nthreads);
+    Array<float> P = Array<float>::zeroed_parallel((size_t)n_ip * mr * ld, nthreads);
     uint16_t *A16 = reinterpret_cast<uint16_t *>(A.data()), *B16 = reinterpret_cast<uint16_t *>(B.data());
     constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows
     DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
