@@ -737,3 +737,32 @@ def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
     monkeypatch.setenv("FASTMAC_MAC_PRECISION", "auto")
     monkeypatch.setenv("FASTMAC_GEMM", "avx2")
     np.testing.assert_allclose(core.graph_edges(src, tgt, *gp)["g"][pos], g[pos], rtol=2e-6)
+
+
+def test_a_small_graph_dense_all_over_is_one_core(monkeypatch):
+    """Where a small graph is dense all over (FastMAC@20's 1,000 keeps of a dense outdoor pair: half of all
+    pairs linked, outliers included), the cost model runs the product over every node (no gathers, no
+    nodes outside the product, no mirror): G as dense numpy's within the arithmetic's rounding, as with the
+    degree rule's core (FASTMAC_DENSE_CORE=core), and MAC's pose that of the float64 products."""
+    src, tgt, _, _ = clustered(900, 0.6, 0.004, 1, extent=0.4)
+    gp = ("quadratic", 0.06, 0.1, 0.8)
+    w = dense_w(src, tgt, *gp)
+    i, j = np.nonzero(np.triu(w, 1))
+    g = (w * (w @ w))[i, j]
+    pos = g > 0
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")
+    ref = core.mac(src, tgt, *gp, 0.1)
+    # auto: bfloat16 where the CPU has it (fewer terms a sum than at 2,400 nodes: a larger worst case)
+    for mode, tol, median_tol in (("single", 2e-6, 2e-7), ("auto", 5e-3, 1e-4)):
+        monkeypatch.setenv("FASTMAC_MAC_PRECISION", mode)
+        monkeypatch.delenv("FASTMAC_DENSE_CORE", raising=False)
+        whole, res = core.graph_edges(src, tgt, *gp), core.mac(src, tgt, *gp, 0.1)
+        monkeypatch.setenv("FASTMAC_DENSE_CORE", "core")
+        rule = core.graph_edges(src, tgt, *gp)
+        assert whole["dense_core"] == 900 and 128 <= rule["dense_core"] < 900, (whole["dense_core"], rule["dense_core"])
+        for out in (whole, rule):
+            gap = np.abs(out["g"][pos] / g[pos] - 1)
+            assert gap.max() < tol and np.median(gap) < median_tol, (mode, gap.max(), np.median(gap))
+        assert np.all(whole["g"][~pos] == 0)
+        rot = rotation_error_deg(res["pose"][:3, :3], ref["pose"][:3, :3])
+        assert rot < 1e-3 and np.linalg.norm(res["pose"][:3, 3] - ref["pose"][:3, 3]) < 1e-4, (mode, rot)

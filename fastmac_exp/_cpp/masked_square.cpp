@@ -153,9 +153,53 @@ std::vector<int32_t> degree_order(const Csr &V) {
     return order;
 }
 
+// The cost of one multiply-add of the core's product, in sparse steps (a gather of the all-sparse path, or
+// a pair that add_outside_rows adds): measured with perf on Zen 4 (MAC on the 1,000 FastMAC@20 keeps of
+// KITTI 95->94: bfloat16 tiles ~1/80 of a gather); rounded towards the sparse side.
+// float64 arithmetic (MAC's cores under kSingleCore nodes) costs 1/16.
+constexpr double kDoubleStep = 1.0 / 16;
+double dense_step_cost(int64_t m, Precision precision) {
+    if (precision == Precision::Double) return kDoubleStep;
+    if (precision == Precision::Mac) {
+        if (m < kSingleCore || env_is("FASTMAC_MAC_PRECISION", "double")) return kDoubleStep;
+        if (m >= kHalfCore && !env_is("FASTMAC_MAC_PRECISION", "single") && pick_bf16_tile().fn) return 1.0 / 64;
+    }
+    return 1.0 / 32;
+}
+
+// The rows of D: the nodes whose core neighbours cost more as pairs added one by one (add_outside_rows,
+// ~2 sparse steps a pair) than as a row of the product (m^2 / 2 multiply-adds). MAC's float64 graphs
+// and the float64 cores (< kSingleCore nodes; the C++/Python parity tests among them) keep the rule they were
+// checked with, >= m / 4.
+bool in_rows(int64_t deg_core, int64_t m, double step) {
+    if (step >= kDoubleStep) return 4 * deg_core >= m;
+    return 2.0 * (double)deg_core * (double)deg_core >= step * (double)m * (double)m / 2.0;
+}
+
+// The whole graph as the core (m = n): where a small graph is dense all over (FastMAC's 1,000 keeps of
+// a dense outdoor pair: 46 % of all pairs linked), the product over every node costs less than the
+// core's product plus the gathers of the edges outside it, the pairs of the nodes outside K and the
+// mirror; and every entry of S then reads P. Compared by the same cost model, from cores whose product
+// is not in float64 (a float64 core keeps the sums it was checked with).
+constexpr int64_t kWholeMax = 4096;  // P of n x n floats: 64 MB
+
+struct CoreCost {
+    double dense = 0.0, pairs = 0.0;
+    double total() const { return dense + pairs; }
+};
+
+CoreCost core_cost(const std::vector<int64_t> &deg_core, int64_t m, double step) {
+    CoreCost c;
+    for (int64_t d : deg_core) {
+        if (in_rows(d, m, step)) c.dense += step * (double)m * (double)m / 2.0;
+        else c.pairs += (double)d * (double)d;
+    }
+    return c;
+}
+
 // The core and K (m = 0: no dense core worth a matrix product). order: set to degree_order(V) when the
 // search gets that far (else left empty), its first m entries then sorted by index.
-Core find_core(const Csr &V, std::vector<int32_t> &order) {
+Core find_core(const Csr &V, std::vector<int32_t> &order, Precision precision) {
     Core core;
     const int64_t n = V.n;
     if (n < 256 || env_is("FASTMAC_DENSE_CORE", "off")) return core;
@@ -171,18 +215,42 @@ Core find_core(const Csr &V, std::vector<int32_t> &order) {
     for (int64_t a = 0; a < m; ++a) core.pos[order[a]] = (int32_t)a;
     int64_t inside = 0;
     std::vector<int64_t> deg_core(n, 0);
-    for (int64_t k = 0; k < n; ++k)
-        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) deg_core[k] += core.pos[V.col[p]] >= 0;
+    // and the cost of the edges outside the core: gathers over the shorter row, then the mirror (~1 step
+    // an entry), for the comparison with the whole graph below
+    double rest = 0.0;
+    for (int64_t k = 0; k < n; ++k) {
+        const bool kc = core.pos[k] >= 0;
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
+            const int32_t j = V.col[p];
+            const bool jc = core.pos[j] >= 0;
+            deg_core[k] += jc;
+            if (j > k && !(kc && jc)) rest += (double)std::min(deg(k), deg(j)) + 1.0;
+        }
+    }
     for (int64_t a = 0; a < m; ++a) inside += deg_core[order[a]];
     if (5 * inside < m * m) {  // inside counts each core edge twice: fewer than a fifth of the pairs linked
         core.pos.clear();
         return core;
     }
+    const double step = dense_step_cost(m, precision);
+    if (m < n && n <= kWholeMax && step < kDoubleStep && !env_is("FASTMAC_DENSE_CORE", "core")) {
+        std::vector<int64_t> deg_all(n);
+        for (int64_t k = 0; k < n; ++k) deg_all[k] = deg(k);
+        const double step_n = dense_step_cost(n, precision);
+        if (core_cost(deg_all, n, step_n).total() < core_cost(deg_core, m, step).total() + rest) {
+            std::sort(order.begin(), order.end());
+            for (int64_t a = 0; a < n; ++a) core.pos[order[a]] = (int32_t)a;
+            m = n;
+            deg_core.swap(deg_all);
+            inside = V.nnz();
+        }
+    }
     core.m = m;
     core.nodes.assign(order.begin(), order.begin() + m);
     core.inside = inside;
+    const double step_m = dense_step_cost(m, precision);
     for (int64_t k = 0; k < n; ++k)
-        if (4 * deg_core[k] >= m) core.rows.push_back((int32_t)k);
+        if (in_rows(deg_core[k], m, step_m)) core.rows.push_back((int32_t)k);
     return core;
 }
 
@@ -343,13 +411,28 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
 // Round to bfloat16 stochastically: add 16 random bits below the kept ones and truncate, so that the
 // rounding is unbiased (E[bf16(x)] = x) and the errors of a sum of many products average out. Rounding to
 // nearest is biased on a core's weights, which crowd just below 1 (a relative error of ~4e-4 in every
-// core entry of G, the same sign throughout; ~3e-5 with this). The bits are a hash of (row k, core
-// column c, one multiply), so the result depends neither on the thread count nor on the run. Finite, non-negative x.
-inline uint16_t to_bf16(float x, uint64_t key) {
-    uint32_t u;
-    std::memcpy(&u, &x, sizeof(u));
-    const uint64_t h = (key + 1) * 0x9E3779B97F4A7C15ull;  // the top 16 bits of a Weyl sequence
-    return (uint16_t)(((uint64_t)u + (h >> 48)) >> 16);   // no carry into the sign: x < 2^127
+// core entry of G, the same sign throughout; ~3e-5 with this). The bits are the top 16 of a Weyl sequence
+// over the entry's position (key = row k * ld + core column c: h = (key + 1) * 0x9E3779B97F4A7C15), so the
+// result depends neither on the thread count nor on the run. A row at a time, h stepping by the constant:
+// the loop vectorises. Finite, non-negative x (so u + 2^16 < 2^32: no carry into the sign); 0 stays 0.
+constexpr uint64_t kWeyl = 0x9E3779B97F4A7C15ull;
+
+__attribute__((target_clones("avx512f", "avx2", "default")))
+void round_row_bf16(const float *x, int64_t len, uint64_t key0, uint16_t *out) {
+    uint64_t h = (key0 + 1) * kWeyl;
+    for (int64_t c = 0; c < len; ++c, h += kWeyl) {
+        uint32_t u;
+        std::memcpy(&u, x + c, sizeof(u));
+        out[c] = (uint16_t)((u + (uint32_t)(h >> 48)) >> 16);
+    }
+}
+
+// One micro-panel row of a bfloat16 packing: entries c0 .. c0 + w of two rounded rows of D interleaved
+// (the even row in the low half of each uint32_t), zeros up to `width`.
+inline void pack_pair(const uint16_t *even, const uint16_t *odd, int64_t c0, int64_t w, int64_t width,
+                      uint32_t *dst) {
+    for (int64_t t = 0; t < w; ++t) dst[t] = (uint32_t)even[c0 + t] | ((uint32_t)odd[c0 + t] << 16);
+    for (int64_t t = w; t < width; ++t) dst[t] = 0;
 }
 
 // core_products in bfloat16 with float32 sums: D rounded to bfloat16 (stochastically), packed in pairs of rows (rows 2r
@@ -360,33 +443,30 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
     const int64_t m = core.m, nk = (int64_t)core.rows.size(), nk2 = (nk + 1) / 2;
     const int64_t mr = tile.mr, nr = tile.nr;
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;
-    Array<uint32_t> A = Array<uint32_t>::zeroed_parallel((size_t)n_ip * nk2 * mr, nthreads),
-                    B = Array<uint32_t>::zeroed_parallel((size_t)n_jp * nk2 * nr, nthreads);
+    // every entry of A and B is written below (padding included)
+    Array<uint32_t> A = Array<uint32_t>::uninitialised((size_t)n_ip * nk2 * mr),
+                    B = Array<uint32_t>::uninitialised((size_t)n_jp * nk2 * nr);
     Array<float> P = Array<float>::zeroed_parallel((size_t)n_ip * mr * ld, nthreads);
-    uint16_t *A16 = reinterpret_cast<uint16_t *>(A.data()), *B16 = reinterpret_cast<uint16_t *>(B.data());
     constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows
     DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
     parallel_region(nthreads, [&](int) {
         std::vector<float> dense((size_t)kChunk * ld, 0.0f);
-        std::vector<uint16_t> row16(ld);
+        std::vector<uint16_t> even(ld), odd(ld);
         int64_t lo, hi;
         while (chunks.next(lo, hi)) {
             const int64_t r0 = lo * kChunk, r1 = std::min(nk, r0 + kChunk);
             scatter_core_rows(V, vals, core, r0, r1, ld, dense.data());
-            for (int64_t r = r0; r < r1; ++r) {
-                const float *dr = dense.data() + (r - r0) * ld;
-                const int64_t half = r & 1, r2 = r / 2;
+            for (int64_t r = r0; r < r1; r += 2) {
                 // one rounding of each entry of D, used in both packings
-                for (int64_t c = 0; c < ld; ++c) row16[c] = dr[c] != 0.0f ? to_bf16(dr[c], (uint64_t)r * ld + c) : 0;
-                for (int64_t ip = 0; ip < n_ip; ++ip) {
-                    const int64_t c0 = ip * mr, w = std::min(mr, ld - c0);
-                    uint16_t *dst = A16 + (((size_t)ip * nk2 + r2) * mr) * 2 + half;
-                    for (int64_t t = 0; t < w; ++t) dst[2 * t] = row16[c0 + t];
-                }
-                for (int64_t jp = 0; jp < n_jp; ++jp) {
-                    uint16_t *dst = B16 + (((size_t)jp * nk2 + r2) * nr) * 2 + half;
-                    for (int64_t u = 0; u < nr; ++u) dst[2 * u] = row16[jp * nr + u];
-                }
+                round_row_bf16(dense.data() + (r - r0) * ld, ld, (uint64_t)r * ld, even.data());
+                if (r + 1 < r1) round_row_bf16(dense.data() + (r + 1 - r0) * ld, ld, (uint64_t)(r + 1) * ld, odd.data());
+                else std::fill(odd.begin(), odd.end(), uint16_t(0));
+                const int64_t r2 = r / 2;
+                for (int64_t ip = 0; ip < n_ip; ++ip)
+                    pack_pair(even.data(), odd.data(), ip * mr, std::min(mr, ld - ip * mr), mr,
+                              A.data() + ((size_t)ip * nk2 + r2) * mr);
+                for (int64_t jp = 0; jp < n_jp; ++jp)
+                    pack_pair(even.data(), odd.data(), jp * nr, nr, nr, B.data() + ((size_t)jp * nk2 + r2) * nr);
             }
             std::fill(dense.begin(), dense.end(), 0.0f);
         }
@@ -620,6 +700,22 @@ std::vector<double> forward_products(const Csr &V, const std::vector<double> &va
     return own;
 }
 
+// P's entries below the diagonal from those above (P_ba = P_ab), in 64 x 64 blocks (cache-local both
+// ways): then every entry of S reads its own row of P and no mirror is needed.
+template <class T>
+void symmetrize(T *P, int64_t m, int64_t ld, int nthreads) {
+    constexpr int64_t kB = 16;
+    const int64_t nb = (m + kB - 1) / kB;
+    parallel_for(0, nb, nthreads, 1, [&](int64_t bi, int) {
+        const int64_t a0 = bi * kB, a1 = std::min(m, a0 + kB);
+        for (int64_t bj = 0; bj <= bi; ++bj) {
+            const int64_t b0 = bj * kB, b1 = std::min(m, b0 + kB);
+            for (int64_t a = a0; a < a1; ++a)
+                for (int64_t b = b0; b < std::min(b1, a); ++b) P[a * ld + b] = P[b * ld + a];
+        }
+    });
+}
+
 // Each edge was computed at one of its two entries (done): copy it to the other. Row j's lower part is
 // ordered by i, so a cursor per row finds the mirror of every upper entry. Blocks of rows run in parallel
 // (distinct edges, distinct entries): a block's cursors start where the rows before it left them, the
@@ -746,7 +842,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     // The work is ~ sum over edges of the smaller degree: serial only for small graphs.
     nthreads = resolve_threads(nthreads, std::max<int64_t>(n, V.nnz() / 16));
     std::vector<int32_t> order;
-    const Core core = find_core(V, order);
+    const Core core = find_core(V, order, precision);
     if (core_size) *core_size = core.m;
     InterruptibleRegion ctrl_c;  // Ctrl-C: a 50,000-node graph takes seconds
     const bool listing_ok = precision == Precision::Single;  // the sampler's graph
@@ -776,7 +872,13 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
             Pd = core_products<double>(V, vals, core, tile, ld, nthreads, ctrl_c);
         }
     }
-    const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b
+    // Every edge in the core (the whole graph as the core): both entries of each edge from P.
+    const bool all_core = core.m > 0 && core.inside == V.nnz();
+    if (all_core) {
+        if (single) symmetrize(Pf.data(), core.m, ld, nthreads);
+        else symmetrize(Pd.data(), core.m, ld, nthreads);
+    }
+    const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b (any a, b where all_core)
         return single ? (double)Pf[a * ld + b] : Pd[a * ld + b];
     };
     const auto in_core = [&](int64_t i) { return core.m > 0 && core.pos[i] >= 0; };
@@ -811,6 +913,13 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         mirror_entries(V, S, done, nthreads);
         return S;
     }
+    if (all_core && core.m == n) {  // the whole graph: core index = node (the core sorted by index)
+        parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
+            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p)
+                S[p] = v[p] * (single ? (double)Pf[i * ld + col[p]] : Pd[i * ld + col[p]]);
+        });
+        return S;
+    }
     DynamicRange rows(0, n, 8);
     ctrl_c.throw_if_hit();
     parallel_region(nthreads, [&](int tid) {
@@ -825,7 +934,9 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
             for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) {
                 const int32_t j = col[p];
                 if (ci && in_core(j)) {
-                    if (j > i) {  // a core edge: from P
+                    if (all_core) {
+                        S[p] = v[p] * core_value(core.pos[i], core.pos[j]);
+                    } else if (j > i) {  // a core edge: from P
                         const int64_t a = core.pos[i], b = core.pos[j];
                         S[p] = v[p] * core_value(std::min(a, b), std::max(a, b));
                         done[p] = 1;
@@ -859,7 +970,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         }
     });
     ctrl_c.throw_if_hit();
-    mirror_entries(V, S, done, nthreads);
+    if (!all_core) mirror_entries(V, S, done, nthreads);
     return S;
 }
 
