@@ -759,7 +759,10 @@ def test_a_small_graph_dense_all_over_is_one_core(monkeypatch):
         whole, res = core.graph_edges(src, tgt, *gp), core.mac(src, tgt, *gp, 0.1)
         monkeypatch.setenv("FASTMAC_DENSE_CORE", "core")
         rule = core.graph_edges(src, tgt, *gp)
-        assert whole["dense_core"] == 900 and 128 <= rule["dense_core"] < 900, (whole["dense_core"], rule["dense_core"])
+        assert whole["dense_core"] == 900 and 128 <= rule["dense_core"] < 900, (
+            whole["dense_core"],
+            rule["dense_core"],
+        )
         for out in (whole, rule):
             gap = np.abs(out["g"][pos] / g[pos] - 1)
             assert gap.max() < tol and np.median(gap) < median_tol, (mode, gap.max(), np.median(gap))
