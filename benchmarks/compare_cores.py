@@ -10,6 +10,11 @@ old/new for --rounds rounds, and prints per pair the median ms of: the sampler's
 (graph_signals), MAC@100 and FastMAC@20 (high-pass sampling + MAC on the kept 1,000; bench_core's
 signals_ms and outdoor_run), with new / old.
 
+--kept: MAC alone (the default search) on the sets FastMAC keeps, where its products are MAC's cost: the
+1,000 FastMAC@20 keeps of the real dense outdoor pairs (KITTI 95->94, 199->198, LiDAR; ../shared/data) and
+the near-cliques samples=2500 / samples=5000 keep of bench_core's outdoor-like scene at 50,000 and 200,000
+correspondences (5 and 10 % inliers).
+
 A build of an earlier commit, for --old (then --old /tmp/oldcore/fastmac_exp/_mac_core*.so):
     git worktree add /tmp/old <commit>
     (cd /tmp/old && pip wheel --no-deps --no-build-isolation -w /tmp/w .)
@@ -25,6 +30,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +62,29 @@ for path in sys.argv[3:]:
 print(json.dumps(out))
 """
 
+# --kept: MAC (the C++ backend, default parameters of the KITTI family) on each saved kept set.
+KEPT_CHILD = r"""
+import json, sys, time
+import numpy as np
+from fastmac_exp.backends.cpp import CppBackend
+from fastmac_exp.params import mac_params_for
+from fastmac_exp.types import Correspondences
+reps = int(sys.argv[2])
+params, backend = mac_params_for("kitti", "fpfh"), CppBackend()
+out = {}
+for path in sys.argv[3:]:
+    d = np.load(path)
+    corr = Correspondences(src=d["src"], tgt=d["tgt"])
+    backend.register(corr, params)  # warm-up
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        backend.register(corr, params)
+        ts.append((time.perf_counter() - t0) * 1e3)
+    out[path] = {"mac": float(np.median(ts))}
+print(json.dumps(out))
+"""
+
 
 def describe_pairs(work: Path) -> list[tuple[str, Path]]:
     sys.path.insert(0, str(REPO / "benchmarks"))
@@ -69,10 +98,47 @@ def describe_pairs(work: Path) -> list[tuple[str, Path]]:
     return saved
 
 
-def run_build(so: str, reps: int, paths: list[Path]) -> dict[str, dict[str, float]]:
+def kept_sets(work: Path) -> list[tuple[str, Path]]:
+    """The sets FastMAC keeps (module docstring), saved once; the sampler is the installed core's."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import bench_core
+
+    from fastmac_exp.datasets.user_pairs import SharedRealPairs
+    from fastmac_exp.descriptors.fpfh import FPFHDescriptor
+    from fastmac_exp.params import mac_params_for
+
+    saved = []
+
+    def save(name, corr, idx):
+        path = work / f"{name}.npz"
+        np.savez(path, src=corr.src[idx], tgt=corr.tgt[idx])
+        saved.append((name, path))
+
+    if (bench_core.DATA / "pairs.json").exists():
+        ds = SharedRealPairs(root=str(bench_core.DATA))
+        describe = FPFHDescriptor(max_correspondences=5000)
+        for i, name in enumerate(ds.names()):
+            if name not in ("kitti00_95_to_94", "kitti00_199_to_198", "lidar_smallgicp_source_to_target"):
+                continue
+            pair = ds.load(i)
+            corr = describe(pair, np.random.default_rng(0))
+            params = mac_params_for(pair.family, "fpfh")
+            sgraph = mac_params_for(pair.family, "fpfh", pair.sampler_resolution).graph
+            sparams = replace(params, graph=sgraph)
+            sample = bench_core.fastmac_once(corr, sparams, "auto", 0.2, pair.family, 0)[3]
+            save(f"{name}@20", corr, sample.indices)
+    for n, inl, k in ((50_000, 0.05, 2500), (50_000, 0.10, 2500), (200_000, 0.10, 5000)):
+        corr, _ = bench_core.synthetic(n, inlier_ratio=inl, noise=0.1, seed=1, room=(60.0, 60.0, 4.0))
+        params = mac_params_for("kitti", "fpfh")
+        sample = bench_core.fastmac_once(corr, params, "auto", 1.0, "kitti", 0, samples=k)[3]
+        save(f"planted{n // 1000}k_{round(inl * 100)}%_samples{k}", corr, sample.indices)
+    return saved
+
+
+def run_build(so: str, reps: int, paths: list[Path], child: str = CHILD) -> dict[str, dict[str, float]]:
     env = dict(os.environ, FASTMAC_CORE_SO=so)
     res = subprocess.run(
-        [sys.executable, "-c", CHILD, "x", str(reps), *map(str, paths)],
+        [sys.executable, "-c", child, "x", str(reps), *map(str, paths)],
         env=env, capture_output=True, text=True, check=True, cwd=REPO,
     )  # fmt: skip
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -84,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--new", default=None, help="default: the installed extension")
     ap.add_argument("--rounds", type=int, default=5, help="alternating old/new processes per build")
     ap.add_argument("--reps", type=int, default=3, help="timed calls per stage in each process")
+    ap.add_argument("--kept", action="store_true", help="MAC alone on the sets FastMAC keeps (docstring)")
     args = ap.parse_args(argv)
     new = args.new
     if new is None:
@@ -91,14 +158,14 @@ def main(argv: list[str] | None = None) -> int:
 
         new = importlib.util.find_spec("fastmac_exp._mac_core").origin
     with tempfile.TemporaryDirectory() as tmp:
-        pairs = describe_pairs(Path(tmp))
+        pairs = kept_sets(Path(tmp)) if args.kept else describe_pairs(Path(tmp))
         paths = [p for _, p in pairs]
         runs: dict[str, list[dict]] = {"old": [], "new": []}
         builds = (("old", args.old), ("new", new))
         for r in range(args.rounds):
             for tag, so in builds if r % 2 == 0 else builds[::-1]:
-                runs[tag].append(run_build(so, args.reps, paths))
-    stages = ("signals", "mac100", "fastmac20")
+                runs[tag].append(run_build(so, args.reps, paths, KEPT_CHILD if args.kept else CHILD))
+    stages = ("mac",) if args.kept else ("signals", "mac100", "fastmac20")
     head = f"{'pair':34} | " + " | ".join(f"{s + ' old':>14} {'new':>7} {'x':>5}" for s in stages)
     print(f"old: {args.old}\nnew: {new}")
     print(f"{args.rounds} alternating processes each, {args.reps} calls per stage")

@@ -215,18 +215,8 @@ Core find_core(const Csr &V, std::vector<int32_t> &order, Precision precision) {
     for (int64_t a = 0; a < m; ++a) core.pos[order[a]] = (int32_t)a;
     int64_t inside = 0;
     std::vector<int64_t> deg_core(n, 0);
-    // and the cost of the edges outside the core: gathers over the shorter row, then the mirror (~1 step
-    // an entry), for the comparison with the whole graph below
-    double rest = 0.0;
-    for (int64_t k = 0; k < n; ++k) {
-        const bool kc = core.pos[k] >= 0;
-        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) {
-            const int32_t j = V.col[p];
-            const bool jc = core.pos[j] >= 0;
-            deg_core[k] += jc;
-            if (j > k && !(kc && jc)) rest += (double)std::min(deg(k), deg(j)) + 1.0;
-        }
-    }
+    for (int64_t k = 0; k < n; ++k)
+        for (int64_t p = V.ptr[k]; p < V.ptr[k + 1]; ++p) deg_core[k] += core.pos[V.col[p]] >= 0;
     for (int64_t a = 0; a < m; ++a) inside += deg_core[order[a]];
     if (5 * inside < m * m) {  // inside counts each core edge twice: fewer than a fifth of the pairs linked
         core.pos.clear();
@@ -234,6 +224,11 @@ Core find_core(const Csr &V, std::vector<int32_t> &order, Precision precision) {
     }
     const double step = dense_step_cost(m, precision);
     if (m < n && n <= kWholeMax && step < kDoubleStep && !env_is("FASTMAC_DENSE_CORE", "core")) {
+        // The edges outside the core: a gather over the shorter row each, then the mirror (~1 step an
+        // entry). The core holds the highest degrees, so an edge's shorter row is (about) that of its end
+        // outside the core: ~ sum over those nodes of deg^2.
+        double rest = 0.0;
+        for (int64_t t = m; t < n; ++t) rest += (double)deg(order[t]) * (double)(deg(order[t]) + 1);
         std::vector<int64_t> deg_all(n);
         for (int64_t k = 0; k < n; ++k) deg_all[k] = deg(k);
         const double step_n = dense_step_cost(n, precision);
