@@ -403,7 +403,7 @@ Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
 
 Csr first_order(const double *src, const double *tgt, int64_t n, const GraphParams &gp, int nthreads) {
     check_params(gp);
-    nthreads = resolve_threads(nthreads, n);
+    nthreads = resolve_threads(nthreads, pair_work_size(n));
     if (n == 0) return assemble_graph(0, nthreads, [](int64_t, int32_t *, int32_t *, double *) { return 0; });
     const ScreenData S = make_screen(src, tgt, n, max_distance(gp));
     const ScreenFn screen = pick_screen();

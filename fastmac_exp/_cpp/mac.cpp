@@ -241,7 +241,9 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
 
     // ---- graph: W and G
     auto t0 = Clock::now();
-    Csr W = first_order(src, tgt, n, p.graph, nthreads);
+    // By each stage's own work: FastMAC@20's 1,000 keeps of a dense outdoor pair are under kSerialBelow
+    // correspondences, but their 500,000 pairs and their 200,000-edge clique graph are worth two threads.
+    Csr W = first_order(src, tgt, n, p.graph, requested);
     std::vector<double> G = second_order(W, requested);
     res.t_graph = ms_since(t0);
     res.n_edges = W.n_edges();
@@ -313,7 +315,8 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     caps.enumerate_work_per_node = p.enumerate_budget;
     NodeChoice choice(cg, cgw);
     res.n_cliques = clique_search(cg, cgw, p.min_clique_size, p.search, caps, res.cap_hit, res.search_nodes,
-                                  nthreads, choice, &res.search_used, &res.enumerate_work,
+                                  resolve_threads(requested, std::max<int64_t>(n, (int64_t)cg.col.size() / 64)),
+                                  choice, &res.search_used, &res.enumerate_work,
                                   &res.search_work);
     res.t_cliques = ms_since(t0);
     if (res.n_cliques == 0)

@@ -5,6 +5,7 @@
 // are computed on W's support from sorted neighbour lists (CSR).
 #pragma once
 
+#include <algorithm>
 #include <cstdlib>
 
 #include <cstdint>
@@ -37,6 +38,11 @@ double max_distance(const GraphParams &gp);     // the largest inconsistency tha
 // small problems (n < kSerialBelow), where starting threads costs more than it saves.
 constexpr int64_t kSerialBelow = 1500;
 int resolve_threads(int num_threads, int64_t n = -1);
+// The size resolve_threads weighs for a stage that tests all n (n - 1) / 2 pairs: n, or kSerialBelow
+// from 2^18 pairs (n >= 725), where two threads already pay.
+inline int64_t pair_work_size(int64_t n) {
+    return n * (n - 1) / 2 >= (int64_t(1) << 18) ? std::max(n, kSerialBelow) : n;
+}
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
 
 // The core's switches for tests and comparisons (FASTMAC_DENSE_CORE, FASTMAC_DOMINANCE, ...): the
