@@ -82,7 +82,9 @@ double otsu(const std::vector<double> &cc) {
 // parity test (<= 300 nodes: < 90,000 entries), keep std::cbrt.
 constexpr int64_t kFastCbrtEdges = int64_t(1) << 17;
 
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
 __attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
 void cube_roots(const double *x, int64_t len, double *y) {
     for (int64_t p = 0; p < len; ++p) {
         const double v = x[p];

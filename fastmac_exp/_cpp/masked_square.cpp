@@ -412,7 +412,9 @@ Array<T> core_products(const Csr &V, const std::vector<double> &vals, const Core
 // the loop vectorises. Finite, non-negative x (so u + 2^16 < 2^32: no carry into the sign); 0 stays 0.
 constexpr uint64_t kWeyl = 0x9E3779B97F4A7C15ull;
 
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
 __attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
 void round_row_bf16(const float *x, int64_t len, uint64_t key0, uint16_t *out) {
     uint64_t h = (key0 + 1) * kWeyl;
     for (int64_t c = 0; c < len; ++c, h += kWeyl) {
