@@ -12,6 +12,7 @@
 // anchors' own s^ estimate the terms of t_i. Each row is one thread's serial sum in anchor order: the
 // result does not depend on the thread count.
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <stdexcept>
 #include <vector>
@@ -210,14 +211,20 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
     int64_t best = sizes[0], prev = 0;
     for (const int64_t size : sizes) {
         // x^2 / 2 summed per thread: halves of integers, exact in double, so the total is the same for any
-        // split of the rows among threads
+        // split of the rows among threads. The counts only grow, so once the rows screened so far are over
+        // the budget the prefix is: the block stops there (a dense graph's last block is its largest).
         std::vector<double> work(std::max(nt, 1), 0.0);
+        std::atomic<int64_t> twice_so_far{0};
+        const double twice_budget = 2.0 * pair_budget;
         for_each_row(n, nt, scratch, [&](int64_t i, RowScratch &S, int tid) {
+            if ((double)twice_so_far.load(std::memory_order_relaxed) > twice_budget) return;
             int64_t cnt = 0;
             anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
             count[i] += cnt;
             work[tid] += 0.5 * (double)count[i] * (double)count[i];
+            twice_so_far.fetch_add(count[i] * count[i], std::memory_order_relaxed);
         });
+        if ((double)twice_so_far.load() > twice_budget) break;
         double total = 0.0;
         for (double w : work) total += w;
         if (total > pair_budget) break;
