@@ -186,11 +186,14 @@ needs_core = pytest.mark.skipif(not __import__("fastmac_exp.core").core.availabl
 
 @needs_core
 def test_cpp_patch_kernels_equal_numpy(room):
-    """The C++ core's cut_patches and group_cells give numpy's patches and cells, bit for bit, on a room
-    and a sparse street-like cloud (balls of a few points to many hundreds, keypoints off the cloud)."""
+    """The C++ core's cut_patches (with and without its per-cloud index) and group_cells give numpy's patches
+    and cells, bit for bit, on a room and a sparse street-like cloud (balls of a few points to many hundreds,
+    keypoints off the cloud, so patches padded with the keypoint, which group_cells skips after `samples`
+    copies); the index's prefix levels are exercised by small patches (k = 8, 40: several levels, balls
+    that fill in the smallest prefix and balls that do not)."""
     from scipy.spatial import cKDTree
 
-    from fastmac_exp.descriptors.buffer import cut_patches
+    from fastmac_exp.descriptors.buffer import _core, cut_patches, patch_index
 
     rng = np.random.default_rng(3)
     street = np.vstack([room * 8.0, rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]])
@@ -199,11 +202,18 @@ def test_cpp_patch_kernels_equal_numpy(room):
         cloud = cloud[rng.permutation(len(cloud))]
         kp = np.vstack([cloud[rng.choice(len(cloud), 200, replace=False)], rng.uniform(-40, 40, (10, 3))])
         tree = cKDTree(cloud)
-        a = cut_patches(cloud, tree, kp, radius, 512, fast=False)
-        b = cut_patches(cloud, tree, kp, radius, 512)
-        assert np.array_equal(a, b)
-        aligned = (a - kp[:, None, :]) / radius
+        for k in (512, 40, 8):
+            a = cut_patches(cloud, tree, kp, radius, k, fast=False)
+            b = cut_patches(cloud, tree, kp, radius, k)
+            index = patch_index(cloud, radius, k)
+            assert index is not None and index.n == len(cloud) and (k == 512 or index.levels > 1)
+            c = cut_patches(cloud, tree, kp, radius, k, index=index)
+            assert np.array_equal(a, b) and np.array_equal(a, c), (radius, k)
+        assert (a[:, :-1] == kp[:, None, :]).all(axis=2).any()  # some patches are padded
+        aligned = (cut_patches(cloud, tree, kp, radius, 512) - kp[:, None, :]) / radius
         assert np.array_equal(group_cells(aligned, params), group_cells(aligned, params, fast=False))
+    with pytest.raises(ValueError, match="another cloud"):
+        _core().buffer_cut_patches(cloud[:-1], kp, radius, 512, patch_index(cloud, radius, 512))
 
 
 def test_alignment_takes_the_axis_to_z():
