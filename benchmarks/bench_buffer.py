@@ -82,6 +82,8 @@ def previous_int8(commit: str = PREVIOUS) -> dict:
         name = f"buffer_{fam}_desc_int8.onnx"
         (folder / name).write_bytes(git_file(commit, f"fastmac_exp/models/{name}"))
         out[f"model_{fam}_int8"] = str(folder / name)
+    ref = "fastmac_exp/models/buffer_3dmatch_ref.onnx"  # looked up beside the Desc model otherwise
+    (folder / Path(ref).name).write_bytes(git_file(commit, ref))
     return out
 
 
