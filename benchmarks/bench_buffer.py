@@ -1,17 +1,20 @@
-"""BUFFER's cost on a CPU, the code before the speed work (commit 6333dc0, run from git) against today's,
-side by side in one run (issue 31, item 1), and the inlier ratios on the real pairs.
+"""BUFFER's cost on a CPU: the code before the speed work (commit 6333dc0), the code and int8 models of
+98f33b2 (before the second round of issue 31), and today's, side by side in one run (run from git), and the
+inlier ratios on the real pairs.
 
     python benchmarks/bench_buffer.py              # speed: a 3DMatch fragment and a KITTI scan, 3 repeats
     python benchmarks/bench_buffer.py --inliers    # + IR on every real pair, float32 and int8
-    python benchmarks/bench_buffer.py --json out.json --reps 5 --threads 1
+    python benchmarks/bench_buffer.py --json out.json --reps 5 --threads 1 [--skip-before]
 
 Speed (needs ../shared/data): per fragment, the target cloud of 3dm_redkitchen_4_to_0_teaser_fullres
 (5,208 keypoints) and of kitti00_95_to_94 (17,355 keypoints), and per pair (both clouds, as a run
 describes them). "before" describes every keypoint of both clouds in float32 (the code of 6333dc0,
-imported from `git show`); "now" describes the keypoints the pair needs (the 5,000 source keypoints the
-correspondence cap keeps, every target keypoint), in float32 and in int8. Old and new run interleaved,
-each repeat on a fresh descriptor (no cloud cache carried over); medians of `--reps`. The machine is
-shared: only the ratios within one run mean much.
+imported from `git show`); 98f33b2 and "now" describe the keypoints the pair needs (the 5,000 source
+keypoints the correspondence cap keeps, every target keypoint), "now" in float32 and in int8. The variants
+run interleaved, each repeat on a fresh descriptor (no cloud cache carried over, the onnxruntime sessions
+opened before the clock starts); medians of `--reps`, wall and CPU seconds of the process (the patch
+preparation runs in a second thread beside onnxruntime, so CPU > wall), and the 1-minute load average.
+The machine is shared: only the ratios within one run mean much.
 
 Inliers (`--inliers`): every pair of ../shared/data/pairs.json, correspondences drawn with seed 0 as
 training/evaluate.py does; IR of float32 now (equal to before: tests/test_buffer_descriptor.py) and of
@@ -23,6 +26,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -39,24 +43,26 @@ if str(REPO) not in sys.path:
 from fastmac_exp.descriptors.buffer import BufferDescriptor  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
-BEFORE = "6333dc0"
+BEFORE = "6333dc0"  # the code before issue 31's speed work
+PREVIOUS = "98f33b2"  # the code before the second round (VNNI machine: patch index, uint8 convolution chain)
 CASES = (
     ("3dm_redkitchen_4_to_0_teaser_fullres", "3DMatch"),
     ("kitti00_95_to_94", "KITTI"),
 )
 
 
-def old_module():
-    """fastmac_exp/descriptors/buffer.py as it was at BEFORE, imported under another name."""
-    src = subprocess.run(
-        ["git", "-C", str(REPO), "show", f"{BEFORE}:fastmac_exp/descriptors/buffer.py"],
-        check=True,
-        capture_output=True,
-        text=True,
+def git_file(commit: str, path: str) -> bytes:
+    return subprocess.run(
+        ["git", "-C", str(REPO), "show", f"{commit}:{path}"], check=True, capture_output=True
     ).stdout
-    path = Path(tempfile.mkdtemp()) / f"buffer_{BEFORE}.py"
+
+
+def old_module(commit: str = BEFORE):
+    """fastmac_exp/descriptors/buffer.py as it was at `commit`, imported under another name."""
+    src = git_file(commit, "fastmac_exp/descriptors/buffer.py").decode()
+    path = Path(tempfile.mkdtemp()) / f"buffer_{commit}.py"
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location(f"buffer_{BEFORE}", path)
+    spec = importlib.util.spec_from_file_location(f"buffer_{commit}", path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
@@ -69,15 +75,31 @@ def load_pair(pid: str):
     return SharedRealPairs(root=SHARED, ids=[pid]).load(0)
 
 
-def speed(reps: int, threads: int) -> dict:
-    old = old_module()
-    makers = {
-        "before (6333dc0, float32, every keypoint)": lambda: old.BufferDescriptor(
+def previous_int8(commit: str = PREVIOUS) -> dict:
+    """The int8 model files as they were at `commit` (written to a temporary folder): model_*_int8 paths."""
+    out, folder = {}, Path(tempfile.mkdtemp())
+    for fam in ("3dmatch", "kitti"):
+        name = f"buffer_{fam}_desc_int8.onnx"
+        (folder / name).write_bytes(git_file(commit, f"fastmac_exp/models/{name}"))
+        out[f"model_{fam}_int8"] = str(folder / name)
+    ref = "fastmac_exp/models/buffer_3dmatch_ref.onnx"  # looked up beside the Desc model otherwise
+    (folder / Path(ref).name).write_bytes(git_file(commit, ref))
+    return out
+
+
+def speed(reps: int, threads: int, skip_before: bool = False) -> dict:
+    makers = {}
+    if not skip_before:
+        old = old_module()
+        makers["before (6333dc0, float32, every keypoint)"] = lambda: old.BufferDescriptor(
             threads=threads, progress=False
-        ),
-        "now float32": lambda: BufferDescriptor(threads=threads, progress=False),
-        "now int8": lambda: BufferDescriptor(threads=threads, progress=False, precision="int8"),
-    }
+        )
+    prev, prev_models = old_module(PREVIOUS), previous_int8()
+    makers[f"{PREVIOUS} int8 (its code and models)"] = lambda: prev.BufferDescriptor(
+        threads=threads, progress=False, precision="int8", **prev_models
+    )
+    makers["now float32"] = lambda: BufferDescriptor(threads=threads, progress=False)
+    makers["now int8"] = lambda: BufferDescriptor(threads=threads, progress=False, precision="int8")
     out = {}
     for pid, label in CASES:
         try:
@@ -85,34 +107,43 @@ def speed(reps: int, threads: int) -> dict:
         except Exception as exc:  # noqa: BLE001 - the benchmark skips a pair it cannot read
             print(f"{pid}: unavailable ({exc})")
             continue
-        times: dict[str, dict[str, list]] = {name: {"fragment": [], "pair": []} for name in makers}
-        counts = {}
+        times = {name: {k: [] for k in ("fragment", "pair", "fragment_cpu", "pair_cpu")} for name in makers}
+        counts, loads = {}, [os.getloadavg()[0]]
         for _ in range(reps):
             for name, make in makers.items():  # interleaved: each repeat runs every variant once
                 d = make()
-                t = time.perf_counter()
+                d.model_for(pair.family)  # sessions opened outside the timing
+                t, c = time.perf_counter(), time.process_time()
                 d.features(pair.tgt_cloud, pair.voxel_size, "target", family=pair.family, scale=1.0)
                 times[name]["fragment"].append(time.perf_counter() - t)
+                times[name]["fragment_cpu"].append(time.process_time() - c)
                 d = make()
-                t = time.perf_counter()
+                d.model_for(pair.family)
+                t, c = time.perf_counter(), time.process_time()
                 d(pair, np.random.default_rng(0))
                 times[name]["pair"].append(time.perf_counter() - t)
+                times[name]["pair_cpu"].append(time.process_time() - c)
+                loads.append(os.getloadavg()[0])
                 counts[name] = [t["keypoints"] for t in d.timings_log]
         res = {}
         for name in makers:
             res[name] = {
-                "fragment_s": round(statistics.median(times[name]["fragment"]), 2),
-                "pair_s": round(statistics.median(times[name]["pair"]), 2),
+                **{f"{k}_s": round(statistics.median(v), 2) for k, v in times[name].items()},
                 "pair_keypoints_described": counts[name],
             }
-        out[f"{label} ({pid})"] = res
+        out[f"{label} ({pid})"] = {**res, "load_average_1min": [round(x, 2) for x in loads]}
         base = res[next(iter(makers))]
         print(f"\n{label}: {pid}, median of {reps}, {threads or 'all'} onnxruntime thread(s)")
-        print(f"  {'':44s} {'target fragment':>16s} {'pair (src+tgt)':>15s}  keypoints described (src, tgt)")
+        print(f"  load average (1 min) during the run: {min(loads):.1f} .. {max(loads):.1f}")
+        print(
+            f"  {'':44s} {'target fragment':>16s} {'pair (src+tgt)':>15s}  {'CPU s frag / pair':>17s}"
+            "  keypoints described (src, tgt)"
+        )
         for name, r in res.items():
             print(
                 f"  {name:44s} {r['fragment_s']:7.2f} s ({base['fragment_s'] / r['fragment_s']:4.1f}x)"
-                f" {r['pair_s']:7.2f} s ({base['pair_s'] / r['pair_s']:4.1f}x)",
+                f" {r['pair_s']:7.2f} s ({base['pair_s'] / r['pair_s']:4.1f}x)"
+                f"  {r['fragment_cpu_s']:7.2f} / {r['pair_cpu_s']:6.2f}",
                 r["pair_keypoints_described"],
                 flush=True,
             )
@@ -162,13 +193,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0: all cores)")
     ap.add_argument("--inliers", action="store_true", help="also IR on every real pair")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--skip-before", action="store_true", help=f"leave out {BEFORE}'s float32 code (slow)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     if not (SHARED / "pairs.json").is_file():
         sys.exit(f"no real pairs at {SHARED}")
-    report = {"before": BEFORE, "threads": args.threads}
+    report = {"before": BEFORE, "previous": PREVIOUS, "threads": args.threads}
     if not args.no_speed:
-        report["speed"] = speed(args.reps, args.threads)
+        report["speed"] = speed(args.reps, args.threads, args.skip_before)
     if args.inliers:
         report["inliers"] = inliers(args.threads)
     if args.json:

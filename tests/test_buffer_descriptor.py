@@ -186,11 +186,14 @@ needs_core = pytest.mark.skipif(not __import__("fastmac_exp.core").core.availabl
 
 @needs_core
 def test_cpp_patch_kernels_equal_numpy(room):
-    """The C++ core's cut_patches and group_cells give numpy's patches and cells, bit for bit, on a room
-    and a sparse street-like cloud (balls of a few points to many hundreds, keypoints off the cloud)."""
+    """The C++ core's cut_patches (with and without its per-cloud index) and group_cells give numpy's patches
+    and cells, bit for bit, on a room and a sparse street-like cloud (balls of a few points to many hundreds,
+    keypoints off the cloud, so patches padded with the keypoint, which group_cells skips after `samples`
+    copies); the index's prefix levels are exercised by small patches (k = 8, 40: several levels, balls
+    that fill in the smallest prefix and balls that do not)."""
     from scipy.spatial import cKDTree
 
-    from fastmac_exp.descriptors.buffer import cut_patches
+    from fastmac_exp.descriptors.buffer import _core, cut_patches, patch_index
 
     rng = np.random.default_rng(3)
     street = np.vstack([room * 8.0, rng.uniform(-30, 30, (3000, 3)) * [1, 1, 0.1]])
@@ -199,11 +202,18 @@ def test_cpp_patch_kernels_equal_numpy(room):
         cloud = cloud[rng.permutation(len(cloud))]
         kp = np.vstack([cloud[rng.choice(len(cloud), 200, replace=False)], rng.uniform(-40, 40, (10, 3))])
         tree = cKDTree(cloud)
-        a = cut_patches(cloud, tree, kp, radius, 512, fast=False)
-        b = cut_patches(cloud, tree, kp, radius, 512)
-        assert np.array_equal(a, b)
-        aligned = (a - kp[:, None, :]) / radius
+        for k in (512, 40, 8):
+            a = cut_patches(cloud, tree, kp, radius, k, fast=False)
+            b = cut_patches(cloud, tree, kp, radius, k)
+            index = patch_index(cloud, radius, k)
+            assert index is not None and index.n == len(cloud) and (k == 512 or index.levels > 1)
+            c = cut_patches(cloud, tree, kp, radius, k, index=index)
+            assert np.array_equal(a, b) and np.array_equal(a, c), (radius, k)
+        assert (a[:, :-1] == kp[:, None, :]).all(axis=2).any()  # some patches are padded
+        aligned = (cut_patches(cloud, tree, kp, radius, 512) - kp[:, None, :]) / radius
         assert np.array_equal(group_cells(aligned, params), group_cells(aligned, params, fast=False))
+    with pytest.raises(ValueError, match="another cloud"):
+        _core().buffer_cut_patches(cloud[:-1], kp, radius, 512, patch_index(cloud, radius, 512))
 
 
 def test_alignment_takes_the_axis_to_z():
@@ -442,6 +452,112 @@ def test_int8_models_are_the_recorded_quantisation_of_the_shipped_models():
         assert model.params == BufferDescriptor(progress=False).load(fam).params
         assert "QLinearConv" in {n.op_type for n in __import__("onnx").load(str(path)).graph.node}
     assert q.name == "buffer_int8" and BufferDescriptor(progress=False).name == "buffer"
+
+
+def test_int8_models_keep_the_convolutions_in_uint8():
+    """The shipped int8 models went through fuse_requantize: between the convolutions no float32 chain
+    (DequantizeLinear -> Relu -> padding -> QuantizeLinear) is left, only the uint8 padding."""
+    from fastmac_exp.descriptors.buffer import SHIPPED_INT8
+
+    onnx = pytest.importorskip("onnx")
+    for fam, rec in QUANT["families"].items():
+        graph = onnx.load(str(resolve_model_path(SHIPPED_INT8[fam]))).graph
+        ops = [n.op_type for n in graph.node]
+        assert ops.count("QLinearConv") == 10 and ops.count("QuantizeLinear") == 1, (fam, ops)
+        assert ops.count("DequantizeLinear") == 2 and ops.count("Relu") == 2, (fam, ops)  # the tail only
+        assert rec["fused_chains"] == 9 and rec["int8_unfused_sha256"] != rec["int8_sha256"]
+
+
+def test_fuse_requantize_keeps_what_the_network_computes(tmp_path):
+    """fuse_requantize on a small quantised network of the same shape (conv -> relu -> circular padding ->
+    conv -> relu -> 1x1 conv): the chains go, the outputs stay those of the unfused int8 model within a
+    quantisation step and as close to float32, and a chain whose QuantizeLinear has a zero point is kept."""
+    onnx = pytest.importorskip("onnx")
+    ort = pytest.importorskip("onnxruntime")
+    from onnx import TensorProto, helper, numpy_helper
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+    from training.buffer_quantize import fuse_requantize
+
+    rng = np.random.default_rng(0)
+    init = [
+        numpy_helper.from_array(rng.normal(0, 0.3, (8, 4, 3, 3)).astype(np.float32), "w0"),
+        numpy_helper.from_array(rng.normal(0, 0.3, (8, 8, 3, 3)).astype(np.float32), "w1"),
+        numpy_helper.from_array(rng.normal(0, 0.3, (2, 8, 1, 1)).astype(np.float32), "w2"),
+        numpy_helper.from_array(np.array([-1], np.int64), "m1"),
+        numpy_helper.from_array(np.array([1], np.int64), "p1"),
+        numpy_helper.from_array(np.array([0], np.int64), "z"),
+        numpy_helper.from_array(np.array([3], np.int64), "ax"),
+        numpy_helper.from_array(np.array([2**62], np.int64), "big"),
+    ]
+    nodes = []
+
+    def pad(x, name):  # upstream's circular padding of the azimuth (the last axis)
+        nodes.extend(
+            [
+                helper.make_node("Slice", [x, "m1", "big", "ax"], [name + "_l"]),
+                helper.make_node("Slice", [x, "z", "p1", "ax"], [name + "_r"]),
+                helper.make_node("Concat", [name + "_l", x, name + "_r"], [name], axis=3),
+            ]
+        )
+        return name
+
+    conv = dict(kernel_shape=[3, 3], pads=[1, 0, 1, 0])
+    nodes.append(helper.make_node("Conv", [pad("x", "x_p"), "w0"], ["c0"], **conv))
+    nodes.append(helper.make_node("Relu", ["c0"], ["r0"]))
+    nodes.append(helper.make_node("Conv", [pad("r0", "r0_p"), "w1"], ["c1"], **conv))
+    nodes.append(helper.make_node("Relu", ["c1"], ["r1"]))
+    nodes.append(helper.make_node("Conv", ["r1", "w2"], ["y"]))
+    graph = helper.make_graph(
+        nodes,
+        "toy",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["M", 4, 5, 12])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["M", 2, 5, 12])],
+        init,
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    src, q = tmp_path / "f.onnx", tmp_path / "q.onnx"
+    onnx.save(model, str(src))
+    data = np.abs(rng.normal(0, 1, (64, 4, 5, 12))).astype(np.float32)
+
+    class Reader(CalibrationDataReader):
+        def __init__(self) -> None:
+            self.done = False
+
+        def get_next(self):
+            if self.done:
+                return None
+            self.done = True
+            return {"x": data}
+
+    quantize_static(
+        str(src), str(q), Reader(), quant_format=QuantFormat.QOperator, op_types_to_quantize=["Conv"],
+        per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+    )  # fmt: skip
+    unfused = onnx.load(str(q))
+    fused = onnx.load(str(q))
+    assert fuse_requantize(fused) == 3  # two conv -> relu -> pad -> conv chains and the input's padding
+    onnx.checker.check_model(fused)
+    ops = [n.op_type for n in fused.graph.node]
+    assert "Relu" not in ops and ops.count("QuantizeLinear") == 1 and ops.count("DequantizeLinear") == 1, ops
+
+    def run(m):
+        return ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+            None, {"x": data}
+        )[0]
+
+    want, a, b = run(model), run(unfused), run(fused)
+    scale = np.abs(want).max()
+    assert np.abs(b - a).max() < 0.1 * scale and not np.array_equal(a, b)  # requantised once, not twice
+    assert np.abs(b - want).mean() <= 1.05 * np.abs(a - want).mean(), (
+        np.abs(b - want).mean(),
+        np.abs(a - want).mean(),
+    )
+    # a QuantizeLinear with a non-zero zero point (not after a Relu's output) is not fused
+    zp = next(t for t in unfused.graph.initializer if t.name.endswith("zero_point") and "r0" in t.name)
+    zp.CopyFrom(numpy_helper.from_array(np.array(3, np.uint8), zp.name))
+    assert fuse_requantize(unfused) == 2
 
 
 def test_int8_descriptors_stay_close_to_float32(room):

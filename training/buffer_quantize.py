@@ -73,7 +73,7 @@ def synthetic_clouds(family: str, pairs: int, seed: int) -> list:
     return [ds.load(i) for i in range(pairs)]
 
 
-def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str) -> None:
+def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str, fuse: bool = True) -> None:
     import onnx
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -105,10 +105,125 @@ def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str) -> None:
     meta = {p.key: p.value for p in onnx.load(str(src)).metadata_props}
     meta.update({"fastmac.precision": "int8", "fastmac.quantized_from_sha256": sha256(src)})
     model = onnx.load(str(dst))
+    if fuse:
+        meta["fastmac.int8_fused_chains"] = str(fuse_requantize(model))
+        onnx.checker.check_model(model)
     del model.metadata_props[:]
     for k, v in sorted(meta.items()):
         model.metadata_props.add(key=k, value=v)
     onnx.save(model, str(dst))
+
+
+MOVES = ("Slice", "Concat")  # data movement: commutes with an elementwise (de)quantisation
+
+
+def fuse_requantize(model):
+    """Keeps the convolution stack in uint8 (issue 31): onnxruntime's QOperator quantisation leaves each
+    `QLinearConv -> DequantizeLinear -> Relu -> Slice / Concat (the azimuth's circular padding) ->
+    QuantizeLinear -> QLinearConv` in float32 between the convolutions. Where the QuantizeLinear's zero
+    point is 0 (it was calibrated on the Relu's non-negative output), the convolution is given that
+    QuantizeLinear's scale and zero point instead: its saturation at 0 is the Relu, the padding copies
+    uint8, and the DequantizeLinear, Relu and QuantizeLinear go. The padding of the first convolution's
+    float input is quantised before it instead of after (the same values). The convolutions' weights and
+    activation scales are the calibrated ones; each output is rounded once, at the finer post-Relu scale,
+    instead of twice. Returns how many chains were rewritten; the model is changed in place."""
+    from onnx import helper
+    from onnx import numpy_helper as nh
+
+    g = model.graph
+    init = {t.name: t for t in g.initializer}
+    names = set()
+    for i, n in enumerate(g.node):  # nodes are told apart by name below
+        if not n.name or n.name in names:
+            n.name = f"{n.op_type}_{i}_{n.output[0]}"
+        names.add(n.name)
+
+    def consumers(name):
+        return [n for n in g.node if name in n.input]
+
+    def producer(name):
+        return next((n for n in g.node if name in n.output), None)
+
+    def rename(old, new):
+        for n in consumers(old):
+            for i, x in enumerate(n.input):
+                if x == old:
+                    n.input[i] = new
+
+    def moves_to_one_q(start):
+        """The Slice / Concat nodes from `start` to exactly one QuantizeLinear (and it), or None."""
+        frontier, moves, qs = [start], {}, {}
+        while frontier:
+            for n in consumers(frontier.pop()):
+                if n.op_type in MOVES:
+                    if n.name not in moves:
+                        moves[n.name] = n
+                        frontier.append(n.output[0])
+                elif n.op_type == "QuantizeLinear":
+                    qs[n.name] = n
+                else:
+                    return None
+        return (list(moves.values()), next(iter(qs.values()))) if len(qs) == 1 else None
+
+    gone, fused = set(), 0
+    for conv in list(g.node):
+        if conv.op_type != "QLinearConv":
+            continue
+        (dq, *more) = consumers(conv.output[0]) or [None]
+        if dq is None or more or dq.op_type != "DequantizeLinear":
+            continue
+        (relu, *more) = consumers(dq.output[0]) or [None]
+        if relu is None or more or relu.op_type != "Relu":
+            continue
+        found = moves_to_one_q(relu.output[0])
+        if found is None or int(nh.to_array(init[found[1].input[2]])) != 0:
+            continue
+        moves, q = found
+        conv.input[6], conv.input[7] = q.input[1], q.input[2]  # y_scale, y_zero_point
+        rename(relu.output[0], conv.output[0])
+        rename(q.output[0], conv.output[0] if q.input[0] == relu.output[0] else q.input[0])
+        gone.update((dq.name, relu.name, q.name))
+        fused += 1
+    nodes = [n for n in g.node if n.name not in gone]
+    # the first convolution's input: float -> Slice / Concat -> Quantize becomes Quantize -> Slice / Concat
+    for q in nodes:
+        pad = producer(q.input[0]) if q.op_type == "QuantizeLinear" else None
+        if pad is None or pad.op_type != "Concat":
+            continue
+        roots, stack = set(), [pad]
+        while stack:  # back over the padding to the float tensors it copies
+            n = stack.pop()
+            for x in n.input if n.op_type == "Concat" else n.input[:1]:
+                p = producer(x)
+                if p is not None and p.op_type in MOVES:
+                    stack.append(p)
+                else:
+                    roots.add(x)
+        if len(roots) != 1:
+            continue
+        root = roots.pop()
+        found = moves_to_one_q(root)
+        if found is None or found[1].name != q.name:
+            continue
+        early = helper.make_node("QuantizeLinear", [root, q.input[1], q.input[2]], [root + "_quantized"])
+        early.name = root + "_QuantizeLinear"
+        for n in found[0]:
+            for i, x in enumerate(n.input):
+                if x == root and (n.op_type == "Concat" or i == 0):
+                    n.input[i] = early.output[0]
+        rename(q.output[0], q.input[0])
+        at = next((i + 1 for i, n in enumerate(nodes) if root in n.output), 0)  # 0: a graph input
+        nodes = [*nodes[:at], early, *[n for n in nodes[at:] if n.name != q.name]]
+        fused += 1
+        break
+    del g.node[:]
+    g.node.extend(nodes)
+    used = {x for n in g.node for x in n.input}
+    keep = [t for t in g.initializer if t.name in used]
+    del g.initializer[:]
+    g.initializer.extend(keep)
+    del g.value_info[:]  # types changed from float to uint8 along the padding; onnxruntime infers them
+    return fused
 
 
 def check(family: str, dst: Path, pair) -> dict:
@@ -136,6 +251,44 @@ def check(family: str, dst: Path, pair) -> dict:
     return out
 
 
+def fuse_shipped(args) -> None:
+    """fuse_requantize on the shipped int8 models, in place: the same weights and calibrated scales; the
+    record keeps its calibration and gains the unfused model's sha256 and a new held-out check."""
+    import onnx
+
+    path = Path(args.json)
+    record = json.loads(path.read_text())
+    for family in args.families:
+        rec = record["families"][family]
+        dst = MODELS / rec["int8_model"]
+        model = onnx.load(str(dst))
+        meta = {p.key: p.value for p in model.metadata_props}
+        if "fastmac.int8_fused_chains" in meta:
+            print(family, "already fused")
+            continue
+        unfused = sha256(dst)
+        meta["fastmac.int8_fused_chains"] = str(fuse_requantize(model))
+        meta["fastmac.int8_fused_from_sha256"] = unfused
+        del model.metadata_props[:]
+        for k, v in sorted(meta.items()):
+            model.metadata_props.add(key=k, value=v)
+        onnx.checker.check_model(model)
+        onnx.save(model, str(dst))
+        pairs = synthetic_clouds(family, args.calib_pairs + 1, args.seed)
+        rec.update(
+            {
+                "int8_unfused_sha256": unfused,
+                "int8_sha256": sha256(dst),
+                "int8_bytes": dst.stat().st_size,
+                "fused_chains": int(meta["fastmac.int8_fused_chains"]),
+                "held_out_unfused": rec.get("held_out"),
+                "held_out": check(family, dst, pairs[-1]),
+            }
+        )
+        print(family, json.dumps(rec), flush=True)
+    path.write_text(json.dumps(record, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--families", nargs="+", default=["3dmatch", "kitti"])
@@ -144,9 +297,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--calib-keypoints", type=int, default=128, help="per cloud")
     ap.add_argument("--out", default=str(MODELS))
     ap.add_argument("--json", default=str(REPO / "training" / "buffer_quantize.json"))
+    ap.add_argument(
+        "--fuse-shipped",
+        action="store_true",
+        help="only apply fuse_requantize to the shipped int8 models (same calibration) and update the record",
+    )
+    ap.add_argument("--no-fuse", action="store_true", help="leave the float32 chains between convolutions")
     args = ap.parse_args(argv)
     import onnxruntime as ort
 
+    if args.fuse_shipped:
+        fuse_shipped(args)
+        return
     record = {"onnxruntime": ort.__version__, "seed": args.seed, "families": {}}
     for family in args.families:
         src = MODELS / Path(SHIPPED[family]).name
@@ -155,7 +317,7 @@ def main(argv: list[str] | None = None) -> None:
         clouds = [(c, p.voxel_size) for p in pairs[:-1] for c in (p.src_cloud, p.tgt_cloud)]
         calib = model_inputs(family, clouds, args.calib_keypoints, args.seed)
         name = BufferDescriptor(progress=False).model_for(family).input_name
-        quantize(src, dst, calib, name)
+        quantize(src, dst, calib, name, fuse=not args.no_fuse)
         rec = {
             "float_model": src.name,
             "float_sha256": sha256(src),

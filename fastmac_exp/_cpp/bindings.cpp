@@ -419,15 +419,28 @@ nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
     return pose_to_numpy(T);
 }
 
-nb::object buffer_cut_patches(const Points &cloud, const Points &keypoints, double radius, int64_t k) {
+fastmac::PatchIndex buffer_patch_index(const Points &cloud, double radius, int64_t k) {
+    if (cloud.shape(1) != 3 || k < 1 || !(radius > 0))
+        throw std::invalid_argument("buffer_patch_index: (N, 3) cloud, radius > 0, k >= 1");
+    nb::gil_scoped_release nogil;
+    return fastmac::buffer_patch_index(cloud.data(), (int64_t)cloud.shape(0), radius, k);
+}
+
+nb::object buffer_cut_patches(const Points &cloud, const Points &keypoints, double radius, int64_t k,
+                              const fastmac::PatchIndex *index) {
     if (cloud.shape(1) != 3 || keypoints.shape(1) != 3 || k < 1)
         throw std::invalid_argument("buffer_cut_patches: (N, 3) cloud and (M, 3) keypoints, k >= 1");
+    if (index && (index->n != (int64_t)cloud.shape(0) || index->radius != radius))
+        throw std::invalid_argument("buffer_cut_patches: the index was built for another cloud or radius");
     const int64_t m = (int64_t)keypoints.shape(0);
     std::vector<double> out(size_t(m * k * 3));
     {
         nb::gil_scoped_release nogil;
-        fastmac::buffer_cut_patches(cloud.data(), (int64_t)cloud.shape(0), keypoints.data(), m, radius, k,
-                                    out.data());
+        if (index)
+            fastmac::buffer_cut_patches(cloud.data(), *index, keypoints.data(), m, k, out.data());
+        else
+            fastmac::buffer_cut_patches(cloud.data(), (int64_t)cloud.shape(0), keypoints.data(), m, radius, k,
+                                        out.data());
     }
     return to_numpy(std::move(out), {size_t(m), size_t(k), 3});
 }
@@ -555,7 +568,15 @@ NB_MODULE(_mac_core, m) {
           "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
+    nb::class_<fastmac::PatchIndex>(m, "BufferPatchIndex",
+                                    "buffer_cut_patches' grid over one cloud (buffer_patch_index)")
+        .def_ro("n", &fastmac::PatchIndex::n)
+        .def_ro("radius", &fastmac::PatchIndex::radius)
+        .def_prop_ro("levels", [](const fastmac::PatchIndex &ix) { return ix.level_size.size(); });
+    m.def("buffer_patch_index", &buffer_patch_index, "cloud"_a, "radius"_a, "k"_a,
+          "The grid buffer_cut_patches searches, built once for a cloud (pass it as index=)");
     m.def("buffer_cut_patches", &buffer_cut_patches, "cloud"_a, "keypoints"_a, "radius"_a, "k"_a,
+          "index"_a.none() = nb::none(),
           "BUFFER patches (M, k, 3): the first k-1 cloud points within radius of each keypoint, padded with it");
     m.def("buffer_group_cells", &buffer_group_cells, "pts"_a, "centres"_a, "r2"_a, "ptr"_a, "cells"_a, "grid"_a,
           "inv_h"_a, "samples"_a, "BUFFER's sphere_query grouping of aligned patches (M, cells * samples, 3)");

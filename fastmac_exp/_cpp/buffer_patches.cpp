@@ -22,12 +22,12 @@ int64_t cell_key(int64_t x, int64_t y, int64_t z) {
 
 }  // namespace
 
-void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints, int64_t m, double radius,
-                        int64_t k, double *out) {
-    const double r2 = radius * radius;
+PatchIndex buffer_patch_index(const double *cloud, int64_t n, double radius, int64_t k) {
+    PatchIndex ix;
+    ix.n = n;
+    ix.radius = radius;
     const double inv = 1.0 / radius;
-    // cloud points sorted by grid cell (cell size = radius), index order kept within a cell
-    std::vector<std::pair<int64_t, int64_t>> keyed(n);
+    std::vector<int64_t> key_of(n);
     for (int64_t i = 0; i < n; ++i) {
         int64_t c[3];
         for (int d = 0; d < 3; ++d) {
@@ -36,11 +36,30 @@ void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints,
                 throw std::invalid_argument("buffer_cut_patches: the cloud spans too many cells of the radius");
             c[d] = int64_t(f);
         }
-        keyed[i] = {cell_key(c[0], c[1], c[2]), i};
+        key_of[i] = cell_key(c[0], c[1], c[2]);
     }
-    std::sort(keyed.begin(), keyed.end());
-    std::vector<int64_t> keys(n), order(n);
-    for (int64_t i = 0; i < n; ++i) keys[i] = keyed[i].first, order[i] = keyed[i].second;
+    // prefixes n, n/4, n/16, ... down to about 4 k points, smallest first
+    std::vector<int64_t> sizes{n};
+    while (sizes.back() / 4 >= 4 * std::max<int64_t>(k, 1)) sizes.push_back(sizes.back() / 4);
+    std::reverse(sizes.begin(), sizes.end());
+    std::vector<std::pair<int64_t, int64_t>> keyed;
+    for (const int64_t s : sizes) {
+        keyed.resize(s);
+        for (int64_t i = 0; i < s; ++i) keyed[i] = {key_of[i], i};
+        std::sort(keyed.begin(), keyed.end());  // by cell, index order kept within a cell
+        ix.level_start.push_back(int64_t(ix.keys.size()));
+        ix.level_size.push_back(s);
+        for (const auto &kv : keyed) ix.keys.push_back(kv.first), ix.order.push_back(kv.second);
+    }
+    ix.level_start.push_back(int64_t(ix.keys.size()));
+    return ix;
+}
+
+void buffer_cut_patches(const double *cloud, const PatchIndex &ix, const double *keypoints, int64_t m,
+                        int64_t k, double *out) {
+    const double r2 = ix.radius * ix.radius;
+    const double inv = 1.0 / ix.radius;
+    const int64_t levels = int64_t(ix.level_size.size());
     std::vector<int64_t> hits;
     const int64_t take_max = k - 1;
     for (int64_t j = 0; j < m; ++j) {
@@ -54,19 +73,27 @@ void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints,
             inside = inside && std::fabs(f) < double(kAxisCells - 2);
             c[d] = inside ? int64_t(f) : 0;
         }
-        if (inside) {
+        // the first k - 1 hits in index order: all lie in the smallest prefix [0, size) that holds k - 1
+        // hits (every index in it is below every index outside it), so a dense ball reads a few thousand
+        // points of a small prefix instead of every point of its 27 cells
+        for (int64_t l = 0; inside && l < levels; ++l) {
+            hits.clear();
+            const int64_t *keys = ix.keys.data() + ix.level_start[l];
+            const int64_t *order = ix.order.data() + ix.level_start[l];
+            const int64_t *end = ix.keys.data() + ix.level_start[l + 1];
             for (int64_t dx = -1; dx <= 1; ++dx)
                 for (int64_t dy = -1; dy <= 1; ++dy)
                     for (int64_t dz = -1; dz <= 1; ++dz) {
                         const int64_t key = cell_key(c[0] + dx, c[1] + dy, c[2] + dz);
-                        auto lo = std::lower_bound(keys.begin(), keys.end(), key);
-                        for (auto it = lo; it != keys.end() && *it == key; ++it) {
-                            const int64_t i = order[it - keys.begin()];
+                        const int64_t *lo = std::lower_bound(keys, end, key);
+                        for (const int64_t *it = lo; it != end && *it == key; ++it) {
+                            const int64_t i = order[it - keys];
                             const double *p = cloud + 3 * i;
                             const double ex = p[0] - q[0], ey = p[1] - q[1], ez = p[2] - q[2];
                             if (ex * ex + ey * ey + ez * ez <= r2) hits.push_back(i);
                         }
                     }
+            if (int64_t(hits.size()) >= take_max) break;
         }
         int64_t take = int64_t(hits.size());
         if (take > take_max) {
@@ -77,6 +104,11 @@ void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints,
         for (int64_t t = 0; t < take; ++t) std::memcpy(o + 3 * t, cloud + 3 * hits[t], 3 * sizeof(double));
         for (int64_t t = take; t < k; ++t) std::memcpy(o + 3 * t, q, 3 * sizeof(double));
     }
+}
+
+void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints, int64_t m, double radius,
+                        int64_t k, double *out) {
+    buffer_cut_patches(cloud, buffer_patch_index(cloud, n, radius, k), keypoints, m, k, out);
 }
 
 // The voxel of the cell table that holds point q (coordinates scaled by to_unit into the unit ball, then
@@ -98,14 +130,20 @@ void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *cen
     for (int64_t j = 0; j < m; ++j) {
         std::fill(count.begin(), count.end(), 0);
         float *o = out + j * ncell * ns * 3;
+        int64_t run = 0;  // how many times in a row this point has come (the padding repeats the keypoint)
         for (int64_t s = 0; s < p; ++s) {
             const float *q = pts + (j * p + s) * 3;
+            // a point repeated: each copy fills one more slot of every cell it is in that is not yet full,
+            // so after ns copies all of them are full and further copies change nothing
+            run = (s > 0 && q[0] == q[-3] && q[1] == q[-2] && q[2] == q[-1]) ? run + 1 : 1;
+            if (run > ns) continue;
             const int64_t vox = cell_voxel(q, 1.0f, inv_h, g);  // q * 1.0f is q exactly
             for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
                 const int64_t c = cells[t];
+                if (count[c] >= ns) continue;
                 const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
                 const float d2 = dx * dx + dy * dy + dz * dz;
-                if (d2 < r2 && count[c] < ns) {
+                if (d2 < r2) {
                     float *slot = o + (c * ns + count[c]) * 3;
                     if (s != 0) slot[0] = q[0], slot[1] = q[1], slot[2] = q[2];
                     ++count[c];

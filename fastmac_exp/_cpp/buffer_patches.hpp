@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 namespace fastmac {
 
@@ -11,6 +12,21 @@ namespace fastmac {
 // keypoint itself in the last slot. Throws std::invalid_argument when the cloud spans more than 2^20
 // cells of `radius` along an axis.
 void buffer_cut_patches(const double *cloud, int64_t n, const double *keypoints, int64_t m, double radius,
+                        int64_t k, double *out);
+
+// The grid buffer_cut_patches searches, built once per cloud: the points of the prefixes [0, size) of the
+// cloud (size = n, n/4, n/16, ... down to about 4 k; smallest first), each sorted by their cell of
+// `radius` (index order within a cell), keys and indices of every level back to back.
+struct PatchIndex {
+    int64_t n = 0;
+    double radius = 0.0;
+    std::vector<int64_t> keys, order;
+    std::vector<int64_t> level_start;  // levels + 1 offsets into keys / order
+    std::vector<int64_t> level_size;   // the prefix length of each level
+};
+PatchIndex buffer_patch_index(const double *cloud, int64_t n, double radius, int64_t k);
+// buffer_cut_patches on a prebuilt index of `cloud` (the same patches).
+void buffer_cut_patches(const double *cloud, const PatchIndex &index, const double *keypoints, int64_t m,
                         int64_t k, double *out);
 
 // out (m x ncell x ns x 3, zeroed here): upstream's sphere_query on aligned patches `pts` (m x p x 3,

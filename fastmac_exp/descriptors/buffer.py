@@ -47,7 +47,7 @@ import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -220,10 +220,12 @@ def cut_patches(
     k: int,
     workers: int = 1,
     fast=True,
+    index=None,
 ):
     """`(M, k, 3)` patches: the first k-1 points (in `cloud` order) within `radius` of each keypoint,
     padded with the keypoint, the keypoint itself in the last slot. `fast`: the C++ core's kernel when it is
-    built (the same patches, ~10x faster on LiDAR scans, whose balls hold thousands of points)."""
+    built (the same patches, ~10x faster on LiDAR scans, whose balls hold thousands of points); `index`:
+    its grid over `cloud` from `patch_index` (built once per cloud instead of once per call)."""
     core = _core() if fast else None
     if core is not None:
         try:
@@ -232,6 +234,7 @@ def cut_patches(
                 np.ascontiguousarray(keypoints, dtype=np.float64),
                 float(radius),
                 int(k),
+                index,
             )
         except ValueError:  # a cloud spanning more than 2^20 radii: the k-d tree below handles it
             pass
@@ -242,6 +245,20 @@ def cut_patches(
         if n:
             out[i, :n] = cloud[nb[:n]]
     return out
+
+
+def patch_index(cloud: np.ndarray, radius: float, k: int):
+    """The C++ core's grid for `cut_patches(cloud, ..., radius, k, index=...)`, or None (no core, or a cloud
+    it cannot grid: cut_patches then takes its other paths). Prefixes of the cloud sorted by cell, so that a
+    dense ball reads a few thousand points of a small prefix (the first k-1 hits in index order all lie in
+    it) instead of every point of its 27 cells; the patches are the same."""
+    core = _core()
+    if core is None:
+        return None
+    try:
+        return core.buffer_patch_index(np.ascontiguousarray(cloud, dtype=np.float64), float(radius), int(k))
+    except ValueError:
+        return None
 
 
 class CellTable:
@@ -489,6 +506,17 @@ class CloudState:
     tree: cKDTree
     ref_points: np.ndarray | None
     ref_axes: np.ndarray | None
+    patch_index: object = None  # cut_patches' C++ grid over `cloud` (patch_index), built on first use
+    patch_index_of: tuple | None = None  # the (radius, k) it was built for
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def index_for(self, radius: float, k: int):
+        """The C++ grid of `cloud` for patches of `radius` and `k` points (built once; None: no core)."""
+        with self._lock:
+            if self.patch_index_of != (radius, k):
+                self.patch_index = patch_index(self.cloud, radius, k)
+                self.patch_index_of = (radius, k)
+            return self.patch_index
 
 
 @dataclass
@@ -533,9 +561,9 @@ class BufferDescriptor(FeatureDescriptor):
     default_graph_key = "spinnet"
     # said when a run starts (experiment.py), until the descriptor is fast
     cost_note = (
-        "BUFFER describes a pair in about 6-23 s on a CPU core with INT8, about twice that in float32 (the 8 "
-        "default pairs: ~2 min from empty caches); a pair in the correspondence cache is not described "
-        "again; limit=N runs fewer"
+        "BUFFER describes a pair in about 2.5-5 s on a CPU core with INT8 and AVX512-VNNI (3DMatch / "
+        "KITTI; about 2-3x that without VNNI or in float32; the 8 default pairs: ~1 min from empty caches); "
+        "a pair in the correspondence cache is not described again; limit=N runs fewer"
     )
 
     def __init__(
@@ -764,7 +792,15 @@ class BufferDescriptor(FeatureDescriptor):
         def prepare(s: int) -> np.ndarray:
             k = sel[s : s + bs]
             patch = (
-                cut_patches(state.cloud, state.tree, k, p.des_r, p.patch_points, workers=1) - k[:, None, :]
+                cut_patches(
+                    state.cloud,
+                    state.tree,
+                    k,
+                    p.des_r,
+                    p.patch_points,
+                    index=state.index_for(p.des_r, p.patch_points),
+                )
+                - k[:, None, :]
             )
             if how == "pca":
                 patch = patch @ align_rotations(pca_axes(patch, k))
@@ -860,6 +896,7 @@ __all__ = [
     "cut_patches",
     "grid_subsample",
     "group_cells",
+    "patch_index",
     "radius_neighbors",
     "ref_inputs",
 ]

@@ -357,7 +357,10 @@ class SpinNetDescriptor(BufferDescriptor):
     def patches(self, model, state: CloudState, kp: np.ndarray, how: str) -> np.ndarray:
         """Aligned patches `(M, patch_points, 3)` float64 of the keypoints `kp` (steps 3-4)."""
         p = model.params
-        patch = cut_patches(state.cloud, state.tree, kp, p.des_r, p.patch_points, workers=1) - kp[:, None, :]
+        index = state.index_for(p.des_r, p.patch_points)
+        patch = (
+            cut_patches(state.cloud, state.tree, kp, p.des_r, p.patch_points, index=index) - kp[:, None, :]
+        )
         if how == "pca":
             patch = patch @ align_rotations(pca_axes(patch, kp))
         return patch
