@@ -119,6 +119,25 @@ def test_cliques_and_pose_match_a_dense_torch_oracle():
     assert pose_errors(r["pose"], gt, 1.0, 0.02).success
 
 
+def test_sc2_bitset_tiles_are_exact_for_any_thread_count(monkeypatch):
+    """5,000 nodes: SC^2's bitset counts run over two column chunks and three row blocks (the cache tiles of
+    common_neighbours.cpp) and must equal C (C C) on C's support, whatever the thread count and kernel."""
+    sparse = pytest.importorskip("scipy.sparse")
+    corr, _ = make_correspondences(n=5000, inlier_ratio=0.1, noise=0.003, seed=5)
+    g = {t: core.core().length_graph_edges(corr.src, corr.tgt, 0.03, 0.15, num_threads=t) for t in (1, 2, 3)}
+    i, j = g[1]["i"], g[1]["j"]
+    assert len(i) > 100_000 and j.max() >= 4096 and (j - i).max() > 2048  # edges across chunks and blocks
+    c = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(5000, 5000)).tocsr()
+    c = c + c.T
+    want = np.asarray((c @ c)[i, j]).ravel()
+    np.testing.assert_array_equal(g[1]["sc2"], want)
+    np.testing.assert_array_equal(g[1]["sc2_masked"], want)
+    for t in (2, 3):
+        np.testing.assert_array_equal(g[t]["sc2"], g[1]["sc2"])
+    monkeypatch.setenv("FASTMAC_GEMM", "generic")  # the portable kernel (CPUs without AVX-512 VPOPCNTDQ)
+    np.testing.assert_array_equal(core.core().length_graph_edges(corr.src, corr.tgt, 0.03, 0.15)["sc2"], want)
+
+
 def test_topk_tie_order_is_torchs():
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(0)

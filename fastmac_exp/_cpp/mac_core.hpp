@@ -124,9 +124,12 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
 bool bf16_cores();
 
 // masked_square for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
-// bitset rows (column blocks of at most ~32 MB of bitsets; AVX-512 VPOPCNTDQ where the CPU has it).
+// bitset rows, tiled for the caches (common_neighbours.cpp; AVX-512 VPOPCNTDQ where the CPU has it).
 // upper_only: only the entries j > i are filled (the others are 0).
 std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only = false);
+
+// Each edge of V computed at one of its two entries (done[p]): copies it to the other (masked_square.cpp).
+void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int nthreads);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);
