@@ -154,7 +154,7 @@ void sweep_bucket(Bucket &k, const uint64_t *bits, int64_t words, RunFn run) {
 
 }  // namespace
 
-std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only) {
+std::vector<int32_t> common_neighbour_counts(const Csr &V, int nthreads) {
     nthreads = resolve_threads(nthreads, V.n);
     const BitTiles T = bit_tiles(V.n);
     std::vector<Bucket> B = fill_buckets(V, T, nthreads);
@@ -166,18 +166,21 @@ std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_onl
         fill_chunk(V, 64 * kChunkWords * c, words, cursor, bits, nthreads);
         parallel_for(0, T.blocks, nthreads, 1, [&](int64_t b, int) { sweep_bucket(B[b], bits.data(), words, run); });
     }
-    std::vector<double> S(V.nnz(), 0.0);
+    std::vector<int32_t> count(V.nnz(), 0);
     parallel_for(0, T.blocks, nthreads, 1, [&](int64_t b, int) {
         const Bucket &k = B[b];
         for (size_t r = 0; r < k.x.size(); ++r)
-            for (int64_t e = k.start[r]; e < k.start[r + 1]; ++e) S[k.pos[r] + e - k.start[r]] = k.count[e];
+            std::copy(k.count.begin() + k.start[r], k.count.begin() + k.start[r + 1], count.begin() + k.pos[r]);
     });
-    if (!upper_only) {
-        std::vector<uint8_t> done(V.nnz(), 0);
-        for (int64_t i = 0; i < V.n; ++i)
-            for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) done[p] = 1;
-        mirror_entries(V, S, done, nthreads);
-    }
+    return count;
+}
+
+std::vector<double> common_neighbours(const Csr &V, int nthreads) {
+    const std::vector<int32_t> count = common_neighbour_counts(V, nthreads);
+    std::vector<double> S(count.begin(), count.end());
+    std::vector<uint8_t> done(V.nnz(), 0);
+    for (int64_t i = 0; i < V.n; ++i) std::fill(done.begin() + V.upper[i], done.begin() + V.ptr[i + 1], 1);
+    mirror_entries(V, S, done, resolve_threads(nthreads, V.n));
     return S;
 }
 

@@ -125,8 +125,9 @@ bool bf16_cores();
 
 // masked_square for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
 // bitset rows, tiled for the caches (common_neighbours.cpp; AVX-512 VPOPCNTDQ where the CPU has it).
-// upper_only: only the entries j > i are filled (the others are 0).
-std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only = false);
+std::vector<double> common_neighbours(const Csr &V, int nthreads);
+// The same counts at the upper entries j > i only (the others 0), as integers.
+std::vector<int32_t> common_neighbour_counts(const Csr &V, int nthreads);
 
 // Each edge of V computed at one of its two entries (done[p]): copies it to the other (masked_square.cpp).
 void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int nthreads);
