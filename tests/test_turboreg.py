@@ -138,6 +138,17 @@ def test_sc2_bitset_tiles_are_exact_for_any_thread_count(monkeypatch):
     np.testing.assert_array_equal(core.core().length_graph_edges(corr.src, corr.tgt, 0.03, 0.15)["sc2"], want)
 
 
+def test_masked_square_path_gives_the_bitset_path_result(monkeypatch):
+    """FASTMAC_TURBO_SC2=masked: SC^2 of the (unweighted) hard graph by masked_square instead of the bitset
+    counts; the same cliques and pose."""
+    corr, _ = make_correspondences(n=1500, inlier_ratio=0.1, noise=0.003, seed=7)
+    want = run(corr.src, corr.tgt, **INDOOR)
+    monkeypatch.setenv("FASTMAC_TURBO_SC2", "masked")
+    got = run(corr.src, corr.tgt, **INDOOR)
+    assert list(got["clique"]) == list(want["clique"]) and got["n_sog_edges"] == want["n_sog_edges"]
+    np.testing.assert_array_equal(got["pose"], want["pose"])
+
+
 def test_topk_tie_order_is_torchs():
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(0)

@@ -76,8 +76,9 @@ struct Csr {
     std::vector<int64_t> ptr;    // n + 1
     std::vector<int64_t> upper;  // n
     std::vector<int32_t> col;
-    std::vector<double> w;
+    std::vector<double> w;  // aligned with col; empty for an unweighted graph (every weight 1)
     int64_t nnz() const { return (int64_t)col.size(); }
+    std::vector<double> weights() const { return w.empty() ? std::vector<double>(col.size(), 1.0) : w; }
     int64_t n_edges() const { return nnz() / 2; }
 };
 
@@ -86,8 +87,8 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
 
 // TurboReg's compatibility graph (turboreg.cpp), from float32 coordinates in float32 as its LibTorch code
 // computes it: an edge iff |a - b| < tau and a + b > cut (a = |p_i - p_j|, b = |q_i - q_j|; cut is
-// upstream's radiu_nms length-consistency cut), of weight 1 (hard, upstream's default) or
-// relu(1 - (|a - b| / tau)^2) (soft).
+// upstream's radiu_nms length-consistency cut), unweighted (hard, upstream's default; W.w empty) or of
+// weight relu(1 - (|a - b| / tau)^2) (soft).
 Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads);
 
 // The arithmetic of the dense core's matrix product (masked_square.cpp; the sums outside the core are

@@ -188,7 +188,8 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     r.n_edges = W.n_edges();
     const Upper U = p.hard && !env_is("FASTMAC_TURBO_SC2", "masked")
                         ? upper_positive(W, common_neighbour_counts(W, nthreads), nthreads)
-                        : upper_positive(W, masked_square(W, W.w, nthreads, nullptr, Precision::Single), nthreads);
+                        : upper_positive(W, masked_square(W, W.weights(), nthreads, nullptr, Precision::Single),
+                                         nthreads);
     r.n_sog_edges = (int64_t)U.col.size();
     r.t_graph = ms_since(t0);
     if (U.col.empty()) throw RegistrationFailed("TurboReg: SC^2 has no positive entry (no compatible triangle)");
