@@ -140,15 +140,17 @@ def test_sc2_bitset_tiles_are_exact_for_any_thread_count(monkeypatch):
 
 @pytest.mark.parametrize("extent,tau,cut", [(3.0, 0.012, 0.15), (80.0, 0.1, 0.15), (3.0, 0.05, 1.0)])
 def test_length_graph_kernels_agree(monkeypatch, extent, tau, cut):
-    """C by the AVX-512 kernel (which accepts most edges without the square roots) and by the portable one:
-    exactly the same edges, many of them near tau and near the length cut."""
+    """C by the AVX-512 kernel and by the portable one: exactly the same edges (many of them near tau and
+    near the length cut) and soft weights."""
     corr, _ = make_correspondences(n=3000, inlier_ratio=0.2, noise=0.003, seed=11, extent=extent)
-    got = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut)
-    monkeypatch.setenv("FASTMAC_SCREEN", "generic")
-    want = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut)
-    assert len(want["i"]) > 5000
-    np.testing.assert_array_equal(got["i"], want["i"])
-    np.testing.assert_array_equal(got["j"], want["j"])
+    for hard in (True, False):
+        monkeypatch.delenv("FASTMAC_SCREEN", raising=False)
+        got = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut, hard=hard)
+        monkeypatch.setenv("FASTMAC_SCREEN", "generic")
+        want = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut, hard=hard)
+        assert len(want["i"]) > 5000
+        for k in "ijw":  # the soft graph's weights too
+            np.testing.assert_array_equal(got[k], want[k])
 
 
 def test_masked_square_path_gives_the_bitset_path_result(monkeypatch):
