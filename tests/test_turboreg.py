@@ -119,6 +119,51 @@ def test_cliques_and_pose_match_a_dense_torch_oracle():
     assert pose_errors(r["pose"], gt, 1.0, 0.02).success
 
 
+def test_sc2_bitset_tiles_are_exact_for_any_thread_count(monkeypatch):
+    """5,000 nodes: SC^2's bitset counts run over two column chunks and three row blocks (the cache tiles of
+    common_neighbours.cpp) and must equal C (C C) on C's support, whatever the thread count and kernel."""
+    sparse = pytest.importorskip("scipy.sparse")
+    corr, _ = make_correspondences(n=5000, inlier_ratio=0.1, noise=0.003, seed=5)
+    g = {t: core.core().length_graph_edges(corr.src, corr.tgt, 0.03, 0.15, num_threads=t) for t in (1, 2, 3)}
+    i, j = g[1]["i"], g[1]["j"]
+    assert len(i) > 100_000 and j.max() >= 4096 and (j - i).max() > 2048  # edges across chunks and blocks
+    c = sparse.coo_matrix((np.ones(len(i)), (i, j)), shape=(5000, 5000)).tocsr()
+    c = c + c.T
+    want = np.asarray((c @ c)[i, j]).ravel()
+    np.testing.assert_array_equal(g[1]["sc2"], want)
+    np.testing.assert_array_equal(g[1]["sc2_masked"], want)
+    for t in (2, 3):
+        np.testing.assert_array_equal(g[t]["sc2"], g[1]["sc2"])
+    monkeypatch.setenv("FASTMAC_GEMM", "generic")  # the portable kernel (CPUs without AVX-512 VPOPCNTDQ)
+    np.testing.assert_array_equal(core.core().length_graph_edges(corr.src, corr.tgt, 0.03, 0.15)["sc2"], want)
+
+
+@pytest.mark.parametrize("extent,tau,cut", [(3.0, 0.012, 0.15), (80.0, 0.1, 0.15), (3.0, 0.05, 1.0)])
+def test_length_graph_kernels_agree(monkeypatch, extent, tau, cut):
+    """C by the AVX-512 kernel and by the portable one: exactly the same edges (many of them near tau and
+    near the length cut) and soft weights."""
+    corr, _ = make_correspondences(n=3000, inlier_ratio=0.2, noise=0.003, seed=11, extent=extent)
+    for hard in (True, False):
+        monkeypatch.delenv("FASTMAC_SCREEN", raising=False)
+        got = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut, hard=hard)
+        monkeypatch.setenv("FASTMAC_SCREEN", "generic")
+        want = core.core().length_graph_edges(corr.src, corr.tgt, tau, cut, hard=hard)
+        assert len(want["i"]) > 5000
+        for k in "ijw":  # the soft graph's weights too
+            np.testing.assert_array_equal(got[k], want[k])
+
+
+def test_masked_square_path_gives_the_bitset_path_result(monkeypatch):
+    """FASTMAC_TURBO_SC2=masked: SC^2 of the (unweighted) hard graph by masked_square instead of the bitset
+    counts; the same cliques and pose."""
+    corr, _ = make_correspondences(n=1500, inlier_ratio=0.1, noise=0.003, seed=7)
+    want = run(corr.src, corr.tgt, **INDOOR)
+    monkeypatch.setenv("FASTMAC_TURBO_SC2", "masked")
+    got = run(corr.src, corr.tgt, **INDOOR)
+    assert list(got["clique"]) == list(want["clique"]) and got["n_sog_edges"] == want["n_sog_edges"]
+    np.testing.assert_array_equal(got["pose"], want["pose"])
+
+
 def test_topk_tie_order_is_torchs():
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(0)

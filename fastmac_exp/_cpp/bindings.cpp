@@ -365,16 +365,17 @@ nb::dict length_graph_edges(const Points &src, const Points &tgt, double tau, do
         const fastmac::Csr W = fastmac::length_graph(s32.data(), t32.data(), n, (float)tau, (float)cut, hard,
                                                      num_threads);
         // TurboReg's SC^2: bitset counts for the hard graph, masked_square for the soft one (and as a check)
+        const std::vector<double> w = W.weights();
         const std::vector<double> S = hard ? fastmac::common_neighbours(W, num_threads)
-                                           : fastmac::masked_square(W, W.w, num_threads, nullptr,
+                                           : fastmac::masked_square(W, w, num_threads, nullptr,
                                                                     fastmac::Precision::Single);
-        const std::vector<double> M = fastmac::masked_square(W, W.w, num_threads, nullptr,
+        const std::vector<double> M = fastmac::masked_square(W, w, num_threads, nullptr,
                                                              fastmac::Precision::Double);
         for (int64_t i = 0; i < n; ++i)
             for (int64_t q = W.upper[i]; q < W.ptr[i + 1]; ++q) {
                 ei.push_back(i);
                 ej.push_back(W.col[q]);
-                ew.push_back(W.w[q]);
+                ew.push_back(w[q]);
                 es.push_back(S[q]);
                 em.push_back(M[q]);
             }

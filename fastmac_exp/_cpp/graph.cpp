@@ -317,9 +317,9 @@ ScreenData make_screen(const double *src, const double *tgt, int64_t n, double m
 
 // The symmetric CSR graph whose upper rows row(i, buf, col, w) finds: it writes row i's neighbours j > i
 // (ascending) and their weights to col / w (room for n - i + 16 entries) and returns how many; buf is
-// scratch of n + 32 entries.
+// scratch of n + 32 entries. Unweighted (weighted = false): w is null and W.w stays empty.
 template <class Row>
-Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
+Csr assemble_graph(int64_t n, int nthreads, Row &&row, bool weighted = true) {
     Csr W;
     W.n = n;
     W.ptr.assign(n + 1, 0);
@@ -345,11 +345,12 @@ Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
                 if (part.col.size() < part.size + (size_t)(n - i) + 16) {
                     const size_t cap = std::max(2 * part.col.size(), part.size + (size_t)(n - i) + 16);
                     part.col.resize(cap);
-                    part.w.resize(cap);
+                    if (weighted) part.w.resize(cap);
                 }
                 row_tid[i] = tid;
                 row_off[i] = (int64_t)part.size;
-                row_len[i] = (int64_t)row(i, buf.data(), part.col.data() + part.size, part.w.data() + part.size);
+                row_len[i] = (int64_t)row(i, buf.data(), part.col.data() + part.size,
+                                          weighted ? part.w.data() + part.size : nullptr);
                 part.size += (size_t)row_len[i];
             }
     });
@@ -368,7 +369,7 @@ Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
         W.upper[i] = W.ptr[i] + nlow[i];
     }
     W.col.resize(W.ptr[n]);
-    W.w.resize(W.ptr[n]);
+    if (weighted) W.w.resize(W.ptr[n]);
     const int64_t block = std::max<int64_t>(64, (n + 8 * nthreads - 1) / (8 * nthreads));
     DynamicRange blocks(0, (n + block - 1) / block, 1);
     parallel_region(nthreads, [&](int) {
@@ -381,17 +382,17 @@ Csr assemble_graph(int64_t n, int nthreads, Row &&row) {
                 const Part &part = parts[row_tid[i]];
                 const int32_t *c0 = part.col.data() + row_off[i], *c1 = c0 + row_len[i];
                 const int32_t *c = i + 1 >= r0 ? c0 : std::lower_bound(c0, c1, (int32_t)r0);
-                const double *w = part.w.data() + (c - part.col.data());
-                for (; c < c1 && *c < r1; ++c, ++w) {
+                for (; c < c1 && *c < r1; ++c) {
                     const int64_t q = cursor[*c - r0]++;
                     W.col[q] = (int32_t)i;
-                    W.w[q] = *w;
+                    if (weighted) W.w[q] = part.w[c - part.col.data()];
                 }
             }
             for (int64_t j = r0; j < r1; ++j) {  // and the upper parts of the block's own rows
                 const Part &part = parts[row_tid[j]];
                 std::memcpy(W.col.data() + W.upper[j], part.col.data() + row_off[j], row_len[j] * sizeof(int32_t));
-                std::memcpy(W.w.data() + W.upper[j], part.w.data() + row_off[j], row_len[j] * sizeof(double));
+                if (weighted)
+                    std::memcpy(W.w.data() + W.upper[j], part.w.data() + row_off[j], row_len[j] * sizeof(double));
             }
         }
     });
@@ -448,8 +449,8 @@ __attribute__((always_inline)) inline size_t length_row_scalar(const LengthData 
         const float b = std::sqrt(__builtin_fmaf(bz, bz, __builtin_fmaf(by, by, bx * bx)));
         const float d = std::fabs(a - b);
         if (d < L.tau && !(a + b <= L.cut)) {
-            col[cnt] = (int32_t)j;
-            w[cnt++] = L.hard ? 1.0 : soft_weight(d, L.tau);
+            if (!L.hard) w[cnt] = soft_weight(d, L.tau);
+            col[cnt++] = (int32_t)j;
         }
     }
     return cnt;
@@ -497,9 +498,7 @@ __attribute__((target("avx512f,fma"))) size_t length_row_avx512(const LengthData
         _mm512_storeu_si512(col + cnt, _mm512_maskz_compress_epi32(keep, _mm512_add_epi32(_mm512_set1_epi32((int)j),
                                                                                             lane)));
         const size_t k = (size_t)__builtin_popcount((unsigned)keep);
-        if (L.hard) {
-            for (size_t c = 0; c < k; ++c) w[cnt + c] = 1.0;
-        } else {
+        if (!L.hard) {
             alignas(64) float dl[16];
             _mm512_store_ps(dl, _mm512_maskz_compress_ps(keep, d));
             for (size_t c = 0; c < k; ++c) w[cnt + c] = soft_weight(dl[c], L.tau);
@@ -536,9 +535,8 @@ Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float
     if (want != "generic" && want != "avx2" && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("fma"))
         row = length_row_avx512;
 #endif
-    return assemble_graph(n, nthreads, [&](int64_t i, int32_t *, int32_t *col, double *w) {
-        return row(L, i, col, w);
-    });
+    return assemble_graph(
+        n, nthreads, [&](int64_t i, int32_t *, int32_t *col, double *w) { return row(L, i, col, w); }, !hard);
 }
 
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b) {

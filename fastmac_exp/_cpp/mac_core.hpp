@@ -76,8 +76,9 @@ struct Csr {
     std::vector<int64_t> ptr;    // n + 1
     std::vector<int64_t> upper;  // n
     std::vector<int32_t> col;
-    std::vector<double> w;
+    std::vector<double> w;  // aligned with col; empty for an unweighted graph (every weight 1)
     int64_t nnz() const { return (int64_t)col.size(); }
+    std::vector<double> weights() const { return w.empty() ? std::vector<double>(col.size(), 1.0) : w; }
     int64_t n_edges() const { return nnz() / 2; }
 };
 
@@ -86,8 +87,8 @@ Csr first_order(const double *src, const double *tgt, int64_t n, const GraphPara
 
 // TurboReg's compatibility graph (turboreg.cpp), from float32 coordinates in float32 as its LibTorch code
 // computes it: an edge iff |a - b| < tau and a + b > cut (a = |p_i - p_j|, b = |q_i - q_j|; cut is
-// upstream's radiu_nms length-consistency cut), of weight 1 (hard, upstream's default) or
-// relu(1 - (|a - b| / tau)^2) (soft).
+// upstream's radiu_nms length-consistency cut), unweighted (hard, upstream's default; W.w empty) or of
+// weight relu(1 - (|a - b| / tau)^2) (soft).
 Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads);
 
 // The arithmetic of the dense core's matrix product (masked_square.cpp; the sums outside the core are
@@ -124,9 +125,13 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
 bool bf16_cores();
 
 // masked_square for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
-// bitset rows (column blocks of at most ~32 MB of bitsets; AVX-512 VPOPCNTDQ where the CPU has it).
-// upper_only: only the entries j > i are filled (the others are 0).
-std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only = false);
+// bitset rows, tiled for the caches (common_neighbours.cpp; AVX-512 VPOPCNTDQ where the CPU has it).
+std::vector<double> common_neighbours(const Csr &V, int nthreads);
+// The same counts at the upper entries j > i only (the others 0), as integers.
+std::vector<int32_t> common_neighbour_counts(const Csr &V, int nthreads);
+
+// Each edge of V computed at one of its two entries (done[p]): copies it to the other (masked_square.cpp).
+void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int nthreads);
 
 // Lookup of an entry of a per-position array (e.g. G) at (a, b); 0 when (a, b) is not an edge.
 double csr_lookup(const Csr &W, const std::vector<double> &vals, int32_t a, int32_t b);

@@ -35,10 +35,6 @@
 #include <string>
 #include <utility>
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#include <immintrin.h>
-#endif
-
 #include "dense_tiles.hpp"
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -713,11 +709,14 @@ void symmetrize(T *P, int64_t m, int64_t ld, int nthreads) {
     });
 }
 
+}  // namespace
+
 // Each edge was computed at one of its two entries (done): copy it to the other. Row j's lower part is
 // ordered by i, so a cursor per row finds the mirror of every upper entry. Blocks of rows run in parallel
 // (distinct edges, distinct entries): a block's cursors start where the rows before it left them, the
 // first column >= the block's first row (one binary search per row and block).
-void mirror_block(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int64_t i0, int64_t i1) {
+static void mirror_block(const Csr &V, std::vector<double> &S, const std::vector<uint8_t> &done, int64_t i0,
+                         int64_t i1) {
     std::vector<int64_t> cursor(V.n);
     for (int64_t j = 0; j < V.n; ++j) {
         const int32_t *b = V.col.data() + V.ptr[j], *e = V.col.data() + V.upper[j];
@@ -748,6 +747,8 @@ void mirror_entries(const Csr &V, std::vector<double> &S, const std::vector<uint
                  [&](int64_t b, int) { mirror_block(V, S, done, start[b], start[b + 1]); });
 }
 
+namespace {
+
 // The listing pays where the entries outside the core (12 bytes each for the gathers) outgrow a
 // last-level cache: from 2^21 of them (1.8 M edges at 20,000 nodes: 1.3-1.5x faster; 0.45 M at 10,000 and
 // the real 5,000-node outdoor pairs: slower). FASTMAC_TRIANGLES=on | off forces it (tests, benchmarks).
@@ -758,76 +759,7 @@ bool use_triangles(const Csr &V, const Core &core) {
     return V.nnz() - core.inside >= (int64_t(1) << 21) && V.nnz() / 2 < (int64_t(1) << 32);
 }
 
-// AND + popcount of two bitset rows of `words` words.
-int64_t and_count_generic(const uint64_t *a, const uint64_t *b, int64_t words) {
-    int64_t c = 0;
-    for (int64_t w = 0; w < words; ++w) c += __builtin_popcountll(a[w] & b[w]);
-    return c;
-}
-
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-__attribute__((target("avx512f,avx512vpopcntdq"))) int64_t and_count_avx512(const uint64_t *a, const uint64_t *b,
-                                                                            int64_t words) {
-    __m512i acc = _mm512_setzero_si512();
-    int64_t w = 0;
-    for (; w + 8 <= words; w += 8)
-        acc = _mm512_add_epi64(acc, _mm512_popcnt_epi64(_mm512_and_si512(_mm512_loadu_si512(a + w),
-                                                                          _mm512_loadu_si512(b + w))));
-    if (w < words) {
-        const __mmask8 m = (__mmask8)((1u << (words - w)) - 1u);
-        acc = _mm512_add_epi64(acc, _mm512_popcnt_epi64(_mm512_and_si512(_mm512_maskz_loadu_epi64(m, a + w),
-                                                                          _mm512_maskz_loadu_epi64(m, b + w))));
-    }
-    return _mm512_reduce_add_epi64(acc);
-}
-#endif
-
-using AndCountFn = int64_t (*)(const uint64_t *, const uint64_t *, int64_t);
-
-AndCountFn pick_and_count() {
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-    if (!env_is("FASTMAC_GEMM", "generic") && __builtin_cpu_supports("avx512f") &&
-        __builtin_cpu_supports("avx512vpopcntdq"))
-        return and_count_avx512;
-#endif
-    return and_count_generic;
-}
-
 }  // namespace
-
-std::vector<double> common_neighbours(const Csr &V, int nthreads, bool upper_only) {
-    nthreads = resolve_threads(nthreads, V.n);
-    const int64_t n = V.n, words = (n + 63) / 64;
-    // Column blocks of bw words, so that the block's bitsets (n x bw words) stay within ~32 MB.
-    const int64_t bw = std::min<int64_t>(std::max<int64_t>(words, 1), std::max<int64_t>(16, (int64_t(32) << 20) / (8 * std::max<int64_t>(n, 1))));
-    const AndCountFn and_count = pick_and_count();
-    std::vector<int32_t> count(V.nnz(), 0);  // at the upper entries
-    std::vector<uint64_t> bits((size_t)(n * bw));
-    for (int64_t w0 = 0; w0 < words; w0 += bw) {
-        const int64_t nw = std::min(bw, words - w0), c0 = 64 * w0, c1 = std::min(n, 64 * (w0 + nw));
-        parallel_for(0, n, nthreads, 256, [&](int64_t i, int) {
-            uint64_t *row = bits.data() + i * bw;
-            std::fill(row, row + nw, 0);
-            const int32_t *b = V.col.data() + V.ptr[i], *e = V.col.data() + V.ptr[i + 1];
-            for (const int32_t *c = std::lower_bound(b, e, (int32_t)c0); c < e && *c < c1; ++c)
-                row[(*c - c0) >> 6] |= uint64_t(1) << ((*c - c0) & 63);
-        });
-        parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
-            const uint64_t *bi = bits.data() + i * bw;
-            for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p)
-                count[p] += (int32_t)and_count(bi, bits.data() + (int64_t)V.col[p] * bw, nw);
-        });
-    }
-    std::vector<double> S(count.begin(), count.end());
-    if (!upper_only) {
-        std::vector<uint8_t> done(V.nnz(), 0);
-        for (int64_t i = 0; i < n; ++i)
-            for (int64_t p = V.upper[i]; p < V.ptr[i + 1]; ++p) done[p] = 1;
-        mirror_entries(V, S, done, nthreads);
-    }
-    return S;
-}
-
 
 std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals, int nthreads, int64_t *core_size,
                                   Precision precision) {

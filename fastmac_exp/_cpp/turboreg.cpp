@@ -2,7 +2,7 @@
 // without its N x N dense matrices.
 //
 //  1. C: the length-consistency graph of the first max_N correspondences (length_graph, float32 as upstream).
-//  2. SC^2 = C (.) (C C) on C's support: common_neighbours (bitset AND + popcount, exact counts) for the
+//  2. SC^2 = C (.) (C C) on C's support: common_neighbour_counts (bitset AND + popcount, exact) for the
 //     hard graph, masked_square for the soft one (FASTMAC_TURBO_SC2=masked: masked_square for both).
 //  3. Pivots: torch.topk(triu(SC^2, 1).flatten(), K1), reproduced with its tie order (below).
 //  4. TurboCliques: for pivot (a, b) the two c maximising SC2_ab + SC2_ac + SC2_bc over the c with
@@ -79,17 +79,25 @@ struct Upper {
     }
 };
 
-Upper upper_positive(const Csr &W, const std::vector<double> &S) {
+// S: SC^2 at W's entries (double or integer counts). Rows counted, then filled, in parallel.
+template <class T>
+Upper upper_positive(const Csr &W, const std::vector<T> &S, int nthreads) {
     Upper U;
     U.ptr.assign(W.n + 1, 0);
-    for (int64_t i = 0; i < W.n; ++i) {
+    parallel_for(0, W.n, nthreads, 512, [&](int64_t i, int) {
+        U.ptr[i + 1] = std::count_if(S.begin() + W.upper[i], S.begin() + W.ptr[i + 1], [](T v) { return v > 0; });
+    });
+    for (int64_t i = 0; i < W.n; ++i) U.ptr[i + 1] += U.ptr[i];
+    U.col.resize(U.ptr[W.n]);
+    U.val.resize(U.ptr[W.n]);
+    parallel_for(0, W.n, nthreads, 512, [&](int64_t i, int) {
+        int64_t q = U.ptr[i];
         for (int64_t p = W.upper[i]; p < W.ptr[i + 1]; ++p)
-            if (S[p] > 0.0) {
-                U.col.push_back(W.col[p]);
-                U.val.push_back(S[p]);
+            if (S[p] > 0) {
+                U.col[q] = W.col[p];
+                U.val[q++] = (double)S[p];
             }
-        U.ptr[i + 1] = (int64_t)U.col.size();
-    }
+    });
     return U;
 }
 
@@ -178,10 +186,10 @@ TurboResult turboreg(const double *src, const double *tgt, int64_t n_all, const 
     }
     const Csr W = length_graph(s32.data(), t32.data(), n, (float)p.tau, (float)p.radius_nms, p.hard, nthreads);
     r.n_edges = W.n_edges();
-    const std::vector<double> S = p.hard && !env_is("FASTMAC_TURBO_SC2", "masked")
-                                      ? common_neighbours(W, nthreads, /*upper_only=*/true)
-                                      : masked_square(W, W.w, nthreads, nullptr, Precision::Single);
-    const Upper U = upper_positive(W, S);
+    const Upper U = p.hard && !env_is("FASTMAC_TURBO_SC2", "masked")
+                        ? upper_positive(W, common_neighbour_counts(W, nthreads), nthreads)
+                        : upper_positive(W, masked_square(W, W.weights(), nthreads, nullptr, Precision::Single),
+                                         nthreads);
     r.n_sog_edges = (int64_t)U.col.size();
     r.t_graph = ms_since(t0);
     if (U.col.empty()) throw RegistrationFailed("TurboReg: SC^2 has no positive entry (no compatible triangle)");
