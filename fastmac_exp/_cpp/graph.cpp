@@ -517,7 +517,7 @@ __attribute__((target("fma"))) size_t length_row_fma(const LengthData &L, int64_
 
 Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float cut, bool hard, int nthreads) {
     if (!(tau > 0.0f)) throw std::invalid_argument("tau must be positive");
-    nthreads = resolve_threads(nthreads, n);
+    nthreads = resolve_threads(nthreads, pair_work_size(n));
     LengthData L;
     for (auto *v : {&L.px, &L.py, &L.pz, &L.qx, &L.qy, &L.qz}) v->resize(n);
     for (int64_t i = 0; i < n; ++i) {
