@@ -213,20 +213,33 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
         // x^2 / 2 summed per thread: halves of integers, exact in double, so the total is the same for any
         // split of the rows among threads. The counts only grow, so once the rows screened so far are over
         // the budget the prefix is: the block stops there (a dense graph's last block is its largest).
-        std::vector<double> work(std::max(nt, 1), 0.0);
-        std::atomic<int64_t> twice_so_far{0};
+        // Each thread publishes its share every 64 rows (a shared counter per row made two threads
+        // slower than one); what is published never exceeds the true sum, so stopping on it is exact.
+        struct alignas(64) Share {
+            double work = 0.0;
+            int64_t unpublished = 0, rows = 0;  // twice the work not yet published; rows screened
+        };
+        std::vector<Share> share(std::max(nt, 1));
+        std::atomic<int64_t> twice_published{0};
+        std::atomic<bool> over{false};
         const double twice_budget = 2.0 * pair_budget;
         for_each_row(n, nt, scratch, [&](int64_t i, RowScratch &S, int tid) {
-            if ((double)twice_so_far.load(std::memory_order_relaxed) > twice_budget) return;
+            if (over.load(std::memory_order_relaxed)) return;
             int64_t cnt = 0;
             anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
             count[i] += cnt;
-            work[tid] += 0.5 * (double)count[i] * (double)count[i];
-            twice_so_far.fetch_add(count[i] * count[i], std::memory_order_relaxed);
+            Share &sh = share[tid];
+            sh.work += 0.5 * (double)count[i] * (double)count[i];
+            sh.unpublished += count[i] * count[i];
+            if (++sh.rows % 64 == 0) {
+                const int64_t total = twice_published.fetch_add(sh.unpublished, std::memory_order_relaxed) + sh.unpublished;
+                sh.unpublished = 0;
+                if ((double)total > twice_budget) over.store(true, std::memory_order_relaxed);
+            }
         });
-        if ((double)twice_so_far.load() > twice_budget) break;
+        if (over.load()) break;
         double total = 0.0;
-        for (double w : work) total += w;
+        for (const Share &sh : share) total += sh.work;
         if (total > pair_budget) break;
         best = size;
         prev = size;
