@@ -114,6 +114,26 @@ def test_pair_budget_takes_a_prefix_of_the_draws():
     assert mid in (32, 64, 128, 256)
 
 
+def test_pair_budget_keeps_the_longest_prefix_within_it_for_any_thread_count():
+    """The screen stops a block once the rows screened so far are over the budget (the counts only grow):
+    the prefix kept is still exactly the longest one within it, for 1 to 3 threads. Budgets between two
+    prefixes' pair work (numpy's count of compatible anchors per node), far from either."""
+    corr, _ = make_correspondences(n=3000, inlier_ratio=0.5, noise=0.003, seed=9)
+    a = np.random.default_rng(1).choice(len(corr), size=512)
+    w = dense_w(corr, GP)
+    sizes = (32, 64, 128, 256, 512)
+    work = []
+    for size in sizes:
+        cnt = (w[:, a[:size]] > 0).sum(1)
+        work.append(0.5 * float((cnt.astype(float) ** 2).sum()))
+    assert all(b > 2 * x for x, b in zip(work, work[1:])), work  # prefixes far apart: no knife edge
+    for k in range(1, len(sizes) - 1):
+        budget = float(np.sqrt(work[k] * work[k + 1]))
+        for nt in (1, 2, 3):
+            got = core.anchors_within(corr.src, corr.tgt, GP, a, 32, budget, num_threads=nt)
+            assert got == sizes[k], (budget, nt, got, work)
+
+
 def outdoor(n: int, inliers: float, seed: int = 1):
     """bench_core's outdoor-like scene: a 60 x 60 x 4 m box, 0.1 m noise, KITTI's FPFH kernel."""
     from fastmac_exp.datasets.planted import OUTDOOR_ROOM, planted
