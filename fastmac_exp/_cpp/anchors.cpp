@@ -210,14 +210,13 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
     std::vector<int64_t> count(n, 0);  // compatible anchors of each row in the prefix so far
     int64_t best = sizes[0], prev = 0;
     for (const int64_t size : sizes) {
-        // x^2 / 2 summed per thread: halves of integers, exact in double, so the total is the same for any
-        // split of the rows among threads. The counts only grow, so once the rows screened so far are over
-        // the budget the prefix is: the block stops there (a dense graph's last block is its largest).
-        // Each thread publishes its share every 64 rows (a shared counter per row made two threads
-        // slower than one); what is published never exceeds the true sum, so stopping on it is exact.
+        // Twice the work, sum x^2, in integers per thread: the same total for any split of the rows among
+        // threads. The counts only grow, so once the rows screened so far are over the budget the prefix is:
+        // the block stops there (a dense graph's last block is its largest). Each thread publishes its share
+        // every 64 rows (a shared counter per row made two threads slower than one); what is published
+        // never exceeds the true sum, so stopping on it is exact.
         struct alignas(64) Share {
-            double work = 0.0;
-            int64_t unpublished = 0, rows = 0;  // twice the work not yet published; rows screened
+            int64_t twice = 0, unpublished = 0, rows = 0;
         };
         std::vector<Share> share(std::max(nt, 1));
         std::atomic<int64_t> twice_published{0};
@@ -229,18 +228,17 @@ int64_t anchors_within(const double *src, const double *tgt, int64_t n, const Gr
             anchor_sum(src, tgt, i, A, S.dist, prev, size, cnt);
             count[i] += cnt;
             Share &sh = share[tid];
-            sh.work += 0.5 * (double)count[i] * (double)count[i];
+            sh.twice += count[i] * count[i];
             sh.unpublished += count[i] * count[i];
             if (++sh.rows % 64 == 0) {
-                const int64_t total = twice_published.fetch_add(sh.unpublished, std::memory_order_relaxed) + sh.unpublished;
+                const int64_t seen = twice_published.fetch_add(sh.unpublished, std::memory_order_relaxed);
+                if ((double)(seen + sh.unpublished) > twice_budget) over.store(true, std::memory_order_relaxed);
                 sh.unpublished = 0;
-                if ((double)total > twice_budget) over.store(true, std::memory_order_relaxed);
             }
         });
-        if (over.load()) break;
-        double total = 0.0;
-        for (const Share &sh : share) total += sh.work;
-        if (total > pair_budget) break;
+        int64_t twice = 0;
+        for (const Share &sh : share) twice += sh.twice;
+        if (over.load() || (double)twice > twice_budget) break;
         best = size;
         prev = size;
     }

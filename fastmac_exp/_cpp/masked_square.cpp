@@ -693,7 +693,7 @@ std::vector<double> forward_products(const Csr &V, const std::vector<double> &va
     return own;
 }
 
-// P's entries below the diagonal from those above (P_ba = P_ab), in 64 x 64 blocks (cache-local both
+// P's entries below the diagonal from those above (P_ba = P_ab), in 16 x 16 blocks (cache-local both
 // ways): then every entry of S reads its own row of P and no mirror is needed.
 template <class T>
 void symmetrize(T *P, int64_t m, int64_t ld, int nthreads) {
@@ -802,17 +802,22 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         }
     }
     // Every edge in the core (the whole graph as the core): both entries of each edge from P.
-    const bool all_core = core.m > 0 && core.inside == V.nnz();
-    if (all_core) {
-        if (single) symmetrize(Pf.data(), core.m, ld, nthreads);
-        else symmetrize(Pd.data(), core.m, ld, nthreads);
-    }
-    const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b (any a, b where all_core)
+    const auto core_value = [&](int64_t a, int64_t b) {  // P_ab, a < b
         return single ? (double)Pf[a * ld + b] : Pd[a * ld + b];
     };
     const auto in_core = [&](int64_t i) { return core.m > 0 && core.pos[i] >= 0; };
 
     std::vector<double> S(V.nnz(), 0.0);
+    if (core.m > 0 && core.inside == V.nnz()) {
+        // Every edge in the core (the whole graph as the core): P made symmetric, both entries of each edge
+        // read their own row of it; no gathers, no mirror.
+        if (single) symmetrize(Pf.data(), core.m, ld, nthreads);
+        else symmetrize(Pd.data(), core.m, ld, nthreads);
+        parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
+            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) S[p] = v[p] * core_value(core.pos[i], core.pos[col[p]]);
+        });
+        return S;
+    }
     std::vector<uint8_t> done(V.nnz(), 0);  // S[p] computed at p (else at its mirror)
     // The sampler's graph (single) on a large graph: every edge outside the core from the triangle
     // listing. MAC's graph keeps the per-edge sums below, whose order of additions the Python backend's
@@ -842,13 +847,6 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         mirror_entries(V, S, done, nthreads);
         return S;
     }
-    if (all_core && core.m == n) {  // the whole graph: core index = node (the core sorted by index)
-        parallel_for(0, n, nthreads, 64, [&](int64_t i, int) {
-            for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p)
-                S[p] = v[p] * (single ? (double)Pf[i * ld + col[p]] : Pd[i * ld + col[p]]);
-        });
-        return S;
-    }
     DynamicRange rows(0, n, 8);
     ctrl_c.throw_if_hit();
     parallel_region(nthreads, [&](int tid) {
@@ -863,9 +861,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
             for (int64_t p = ptr[i]; p < ptr[i + 1]; ++p) {
                 const int32_t j = col[p];
                 if (ci && in_core(j)) {
-                    if (all_core) {
-                        S[p] = v[p] * core_value(core.pos[i], core.pos[j]);
-                    } else if (j > i) {  // a core edge: from P
+                    if (j > i) {  // a core edge: from P
                         const int64_t a = core.pos[i], b = core.pos[j];
                         S[p] = v[p] * core_value(std::min(a, b), std::max(a, b));
                         done[p] = 1;
@@ -899,7 +895,7 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
         }
     });
     ctrl_c.throw_if_hit();
-    if (!all_core) mirror_entries(V, S, done, nthreads);
+    mirror_entries(V, S, done, nthreads);
     return S;
 }
 
