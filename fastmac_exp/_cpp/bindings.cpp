@@ -7,6 +7,7 @@
 #include <cstring>
 
 #include "buffer_patches.hpp"
+#include "fpfh.hpp"
 #include "interrupt.hpp"
 #include "mac_core.hpp"
 #include "selection.hpp"
@@ -408,6 +409,78 @@ nb::object nearest_rows(const Points &a, const Points &b, int num_threads) {
     return to_numpy(std::move(idx));
 }
 
+nb::object voxel_downsample(const Points &points, double voxel, int num_threads) {
+    if (points.shape(1) != 3) throw std::invalid_argument("voxel_downsample: points must be (N, 3)");
+    std::vector<double> kp;
+    {
+        nb::gil_scoped_release nogil;
+        kp = fastmac::voxel_downsample(points.data(), (int64_t)points.shape(0), voxel, num_threads);
+    }
+    const size_t m = kp.size() / 3;
+    return to_numpy(std::move(kp), {m, 3});
+}
+
+nb::object radius_neighbours(const Points &points, double radius, int64_t max_nn, int num_threads) {
+    if (points.shape(1) != 3) throw std::invalid_argument("radius_neighbours: points must be (N, 3)");
+    fastmac::Neighbours nbh;
+    {
+        nb::gil_scoped_release nogil;
+        nbh = fastmac::radius_neighbours(points.data(), (int64_t)points.shape(0), radius, max_nn, num_threads);
+    }
+    nb::dict d;
+    d["ptr"] = to_numpy(std::move(nbh.ptr));
+    d["idx"] = to_numpy(std::move(nbh.idx));
+    d["d2"] = to_numpy(std::move(nbh.d2));
+    return d;
+}
+
+// Normals and FPFH of a keypoint cloud (fpfh.hpp): the two neighbourhoods, PCA normals flipped towards
+// `viewpoint` (None: as the eigensolver gives them), FPFH of `rows` (None: every keypoint).
+nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t normal_max_nn, double feature_radius,
+                         int64_t feature_max_nn, nb::object viewpoint, nb::object rows, int num_threads) {
+    if (keypoints.shape(1) != 3) throw std::invalid_argument("fpfh_describe: keypoints must be (N, 3)");
+    const int64_t n = (int64_t)keypoints.shape(0);
+    double vp[3] = {0, 0, 0};
+    const bool has_vp = !viewpoint.is_none();
+    if (has_vp) {
+        auto v = nb::cast<Weights>(viewpoint);
+        if (v.shape(0) != 3) throw std::invalid_argument("fpfh_describe: viewpoint must have 3 entries");
+        for (int d = 0; d < 3; ++d) vp[d] = v.data()[d];
+    }
+    std::vector<int64_t> sel;
+    const bool has_rows = !rows.is_none();
+    if (has_rows) {
+        auto r = nb::cast<Indices>(rows);
+        sel.assign(r.data(), r.data() + r.shape(0));
+    }
+    std::vector<double> normals, feat;
+    {
+        nb::gil_scoped_release nogil;
+        const fastmac::Neighbours nn =
+            fastmac::radius_neighbours(keypoints.data(), n, normal_radius, normal_max_nn, num_threads);
+        normals = fastmac::pca_normals(keypoints.data(), n, nn, has_vp ? vp : nullptr, num_threads);
+        const fastmac::Neighbours fn =
+            fastmac::radius_neighbours(keypoints.data(), n, feature_radius, feature_max_nn, num_threads);
+        feat = fastmac::fpfh_features(keypoints.data(), normals.data(), n, fn, has_rows ? sel.data() : nullptr,
+                                      has_rows ? (int64_t)sel.size() : n, num_threads);
+    }
+    const size_t m = feat.size() / 33;
+    return nb::make_tuple(to_numpy(std::move(normals), {(size_t)n, 3}), to_numpy(std::move(feat), {m, 33}));
+}
+
+nb::object nearest_rows_fast(const Points &a, const Points &b, int num_threads) {
+    if (a.shape(1) != b.shape(1))
+        throw std::invalid_argument("a and b must have the same number of columns, got " +
+                                    std::to_string(a.shape(1)) + " and " + std::to_string(b.shape(1)));
+    fastmac::Matches mt;
+    {
+        nb::gil_scoped_release nogil;
+        mt = fastmac::nearest_rows_fast(a.data(), (int64_t)a.shape(0), b.data(), (int64_t)b.shape(0),
+                                        (int64_t)a.shape(1), num_threads);
+    }
+    return nb::make_tuple(to_numpy(std::move(mt.idx)), to_numpy(std::move(mt.d2_second)), mt.settled_in_float64);
+}
+
 nb::object kabsch(const Points &src, const Points &tgt, nb::object weights) {
     const int64_t n = check_pair(src, tgt);
     std::vector<double> w;
@@ -567,6 +640,16 @@ NB_MODULE(_mac_core, m) {
           "torch.topk's positions (ties included) of a sparse non-negative sequence");
     m.def("nearest_rows", &nearest_rows, "a"_a, "b"_a, "num_threads"_a = 0,
           "Index of the nearest row of b for every row of a (Euclidean, brute force in float64; ties: lowest)");
+    m.def("voxel_downsample", &voxel_downsample, "points"_a, "voxel"_a, "num_threads"_a = 0,
+          "Open3D's voxel_down_sample (centroids, sums in input order), keypoints ordered by voxel");
+    m.def("radius_neighbours", &radius_neighbours, "points"_a, "radius"_a, "max_nn"_a, "num_threads"_a = 0,
+          "Open3D's hybrid search over a cloud itself: CSR dict(ptr, idx, d2), nearest first, at most max_nn");
+    m.def("fpfh_describe", &fpfh_describe, "keypoints"_a, "normal_radius"_a, "normal_max_nn"_a, "feature_radius"_a,
+          "feature_max_nn"_a, "viewpoint"_a = nb::none(), "rows"_a = nb::none(), "num_threads"_a = 0,
+          "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions");
+    m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
+          "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
+          "to float32 accuracy, rows settled in float64)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     nb::class_<fastmac::PatchIndex>(m, "BufferPatchIndex",

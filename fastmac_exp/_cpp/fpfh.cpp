@@ -1,0 +1,461 @@
+// FPFH in the core (fpfh.hpp): the same keypoints, normals and histograms as Open3D's path in
+// fastmac_exp/descriptors/fpfh.py, from one grid per radius instead of a k-d tree, and threaded.
+//
+// Open3D is the reference, so its arithmetic is followed where the result depends on it: the voxel
+// centroid sums in input order; squared distances as ((dx^2 + dy^2) + dz^2) with a strict `< r^2`
+// (nanoflann's radius search); neighbours nearest first; the covariance from raw cumulants; the
+// eigenvector by the same closed form (Eberly's robust 3x3 eigensolver) and its branch order; the
+// pair features, their bins and the weighted sum in Open3D's order of operations.
+#include "fpfh.hpp"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <utility>
+
+#include "mac_core.hpp"
+#include "parallel.hpp"
+
+namespace fastmac {
+
+namespace {
+
+constexpr int64_t kAxisBits = 21;
+constexpr int64_t kAxisMax = (int64_t(1) << kAxisBits) - 1;
+
+inline uint64_t pack(int64_t x, int64_t y, int64_t z) {
+    return (uint64_t(x) << (2 * kAxisBits)) | (uint64_t(y) << kAxisBits) | uint64_t(z);
+}
+
+void cloud_min(const double *p, int64_t n, double lo[3]) {
+    lo[0] = lo[1] = lo[2] = std::numeric_limits<double>::infinity();
+    for (int64_t i = 0; i < n; ++i)
+        for (int d = 0; d < 3; ++d) lo[d] = std::min(lo[d], p[3 * i + d]);
+}
+
+// Sorts (key, index) pairs by key, then index: an LSD radix sort on the key's bytes that are used
+// (stable, so equal keys keep index order).
+void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
+    if (v.size() < 2048) {
+        std::sort(v.begin(), v.end());
+        return;
+    }
+    uint64_t all = 0;
+    for (const auto &e : v) all |= e.first;
+    std::vector<std::pair<uint64_t, int64_t>> tmp(v.size());
+    for (int shift = 0; shift < 64 && (all >> shift); shift += 8) {
+        int64_t count[257] = {0};
+        for (const auto &e : v) ++count[((e.first >> shift) & 0xff) + 1];
+        for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+        for (const auto &e : v) tmp[count[(e.first >> shift) & 0xff]++] = e;
+        v.swap(tmp);
+    }
+}
+
+inline double sq_dist(const double *a, const double *b) {
+    const double dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
+    return dx * dx + dy * dy + dz * dz;
+}
+
+// --- the closed-form eigenvector of the smallest eigenvalue (Open3D's FastEigen3x3) ---------------------
+
+struct V3 {
+    double x, y, z;
+};
+inline V3 cross(const V3 &a, const V3 &b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+inline double dot(const V3 &a, const V3 &b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline V3 scale(const V3 &a, double s) { return {a.x * s, a.y * s, a.z * s}; }
+inline V3 divide(const V3 &a, double s) { return {a.x / s, a.y / s, a.z / s}; }
+inline V3 sub(const V3 &a, const V3 &b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+
+// A symmetric 3x3 matrix by its upper triangle.
+struct Sym3 {
+    double a00, a01, a02, a11, a12, a22;
+};
+
+// The unit null vector of A - eval I: the largest cross product of two of its rows.
+V3 null_vector(const Sym3 &A, double eval) {
+    const V3 r0{A.a00 - eval, A.a01, A.a02}, r1{A.a01, A.a11 - eval, A.a12}, r2{A.a02, A.a12, A.a22 - eval};
+    const V3 c01 = cross(r0, r1), c02 = cross(r0, r2), c12 = cross(r1, r2);
+    const double d0 = dot(c01, c01), d1 = dot(c02, c02), d2 = dot(c12, c12);
+    int pick = 0;
+    double best = d0;
+    if (d1 > best) best = d1, pick = 1;
+    if (d2 > best) pick = 2;
+    if (pick == 0) return divide(c01, std::sqrt(d0));
+    if (pick == 1) return divide(c02, std::sqrt(d1));
+    return divide(c12, std::sqrt(d2));
+}
+
+// The eigenvector of eval1 orthogonal to the known eigenvector e0: the null vector of the 2x2 restriction
+// of A - eval1 I to the plane orthogonal to e0.
+V3 second_vector(const Sym3 &A, const V3 &e0, double eval1) {
+    V3 U;
+    if (std::fabs(e0.x) > std::fabs(e0.y)) {
+        const double inv = 1 / std::sqrt(e0.x * e0.x + e0.z * e0.z);
+        U = {-e0.z * inv, 0, e0.x * inv};
+    } else {
+        const double inv = 1 / std::sqrt(e0.y * e0.y + e0.z * e0.z);
+        U = {0, e0.z * inv, -e0.y * inv};
+    }
+    const V3 V = cross(e0, U);
+    const V3 AU{A.a00 * U.x + A.a01 * U.y + A.a02 * U.z, A.a01 * U.x + A.a11 * U.y + A.a12 * U.z,
+                A.a02 * U.x + A.a12 * U.y + A.a22 * U.z};
+    const V3 AV{A.a00 * V.x + A.a01 * V.y + A.a02 * V.z, A.a01 * V.x + A.a11 * V.y + A.a12 * V.z,
+                A.a02 * V.x + A.a12 * V.y + A.a22 * V.z};
+    double m00 = U.x * AU.x + U.y * AU.y + U.z * AU.z - eval1;
+    double m01 = U.x * AV.x + U.y * AV.y + U.z * AV.z;
+    double m11 = V.x * AV.x + V.y * AV.y + V.z * AV.z - eval1;
+    const double a00 = std::fabs(m00), a01 = std::fabs(m01), a11 = std::fabs(m11);
+    if (a00 >= a11) {
+        if (std::max(a00, a01) <= 0) return U;
+        if (a00 >= a01) {
+            m01 /= m00;
+            m00 = 1 / std::sqrt(1 + m01 * m01);
+            m01 *= m00;
+        } else {
+            m00 /= m01;
+            m01 = 1 / std::sqrt(1 + m00 * m00);
+            m00 *= m01;
+        }
+        return sub(scale(U, m01), scale(V, m00));
+    }
+    if (std::max(a11, a01) <= 0) return U;
+    if (a11 >= a01) {
+        m01 /= m11;
+        m11 = 1 / std::sqrt(1 + m01 * m01);
+        m01 *= m11;
+    } else {
+        m11 /= m01;
+        m01 = 1 / std::sqrt(1 + m11 * m11);
+        m11 *= m01;
+    }
+    return sub(scale(U, m11), scale(V, m01));
+}
+
+// The eigenvector of the smallest eigenvalue of a covariance (zero for the zero matrix).
+V3 smallest_eigenvector(Sym3 A) {
+    const double mx = std::max({A.a00, A.a01, A.a02, A.a11, A.a12, A.a22});
+    if (mx == 0) return {0, 0, 0};
+    A = {A.a00 / mx, A.a01 / mx, A.a02 / mx, A.a11 / mx, A.a12 / mx, A.a22 / mx};
+    const double off = A.a01 * A.a01 + A.a02 * A.a02 + A.a12 * A.a12;
+    if (!(off > 0)) {  // diagonal: the axis of the strictly smallest entry, else z
+        if (A.a00 < A.a11 && A.a00 < A.a22) return {1, 0, 0};
+        if (A.a11 < A.a00 && A.a11 < A.a22) return {0, 1, 0};
+        return {0, 0, 1};
+    }
+    const double q = (A.a00 + A.a11 + A.a22) / 3;
+    const double b00 = A.a00 - q, b11 = A.a11 - q, b22 = A.a22 - q;
+    const double p = std::sqrt((b00 * b00 + b11 * b11 + b22 * b22 + off * 2) / 6);
+    const double c00 = b11 * b22 - A.a12 * A.a12;
+    const double c01 = A.a01 * b22 - A.a12 * A.a02;
+    const double c02 = A.a01 * A.a12 - b11 * A.a02;
+    const double det = (b00 * c00 - A.a01 * c01 + A.a02 * c02) / (p * p * p);
+    const double half_det = std::min(std::max(det * 0.5, -1.0), 1.0);
+    const double angle = std::acos(half_det) / double(3);
+    const double two_thirds_pi = 2.09439510239319549;
+    const double beta2 = std::cos(angle) * 2;
+    const double beta0 = std::cos(angle + two_thirds_pi) * 2;
+    const double beta1 = -(beta0 + beta2);
+    const double e0 = q + p * beta0, e1 = q + p * beta1, e2 = q + p * beta2;
+    if (half_det >= 0) {
+        const V3 v2 = null_vector(A, e2);
+        if (e2 < e0 && e2 < e1) return v2;
+        const V3 v1 = second_vector(A, v2, e1);
+        if (e1 < e0 && e1 < e2) return v1;
+        return cross(v1, v2);
+    }
+    const V3 v0 = null_vector(A, e0);
+    if (e0 < e1 && e0 < e2) return v0;
+    const V3 v1 = second_vector(A, v0, e1);
+    if (e1 < e0 && e1 < e2) return v1;
+    return cross(v0, v1);
+}
+
+// --- pair features and their bins ------------------------------------------------------------------------
+
+inline int bin_of(double t) {  // t already scaled to [0, 11)
+    int h = int(std::floor(t));
+    return h < 0 ? 0 : (h >= 11 ? 10 : h);
+}
+
+// acos(|a1|) > acos(|a2|) without two acos calls where the order is clear: acos is decreasing with slope
+// <= -1, so a gap above a few ulps of pi/2 decides it; closer pairs take Open3D's own comparison.
+inline bool swap_ends(double a1, double a2) {
+    const double x1 = std::fabs(a1), x2 = std::fabs(a2);
+    const double gap = x2 - x1;
+    if (gap > 1e-12) return true;
+    if (gap < -1e-12) return false;
+    return std::acos(x1) > std::acos(x2);
+}
+
+// Adds the three bins of the pair (p1, n1) -> (p2, n2) to h with weight incr (Open3D's
+// ComputePairFeatures and ComputeSPFHFeature).
+inline void add_pair(const double *p1, const double *n1, const double *p2, const double *n2, double incr,
+                     double *h) {
+    double f0 = 0, f1 = 0, f2 = 0;
+    V3 dp{p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2]};
+    const double len = std::sqrt(dot(dp, dp));
+    if (len != 0.0) {
+        V3 a{n1[0], n1[1], n1[2]}, b{n2[0], n2[1], n2[2]};
+        const double a1 = dot(a, dp) / len, a2 = dot(b, dp) / len;
+        double f2c;
+        if (swap_ends(a1, a2)) {
+            std::swap(a, b);
+            dp = {-dp.x, -dp.y, -dp.z};
+            f2c = -a2;
+        } else {
+            f2c = a1;
+        }
+        V3 v = cross(dp, a);
+        const double vn = std::sqrt(dot(v, v));
+        if (vn != 0.0) {
+            v = divide(v, vn);
+            const V3 w = cross(a, v);
+            f1 = dot(v, b);
+            f0 = std::atan2(dot(w, b), dot(a, b));
+            f2 = f2c;
+        }
+    }
+    h[bin_of(11 * (f0 + M_PI) / (2.0 * M_PI))] += incr;
+    h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
+    h[22 + bin_of(11 * (f2 + 1.0) * 0.5)] += incr;
+}
+
+}  // namespace
+
+std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads) {
+    if (!(voxel > 0)) throw std::invalid_argument("voxel_downsample: voxel must be positive");
+    if (n == 0) return {};
+    double lo[3];
+    cloud_min(points, n, lo);
+    for (int d = 0; d < 3; ++d) lo[d] -= voxel * 0.5;
+    std::vector<std::pair<uint64_t, int64_t>> keyed(n);
+    nthreads = resolve_threads(nthreads, n);
+    std::atomic<bool> too_wide{false};
+    parallel_for(0, n, nthreads, 8192, [&](int64_t i, int) {
+        int64_t c[3];
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor((points[3 * i + d] - lo[d]) / voxel);
+            if (!(f <= double(kAxisMax))) {
+                too_wide = true;
+                c[d] = 0;
+            } else {
+                c[d] = int64_t(f);
+            }
+        }
+        keyed[i] = {pack(c[0], c[1], c[2]), i};
+    });
+    if (too_wide)
+        throw std::invalid_argument("voxel_downsample: the cloud spans more than 2^21 voxels along an axis");
+    sort_keyed(keyed);
+    std::vector<double> out;
+    out.reserve(3 * std::min<int64_t>(n, 1 << 20));
+    for (int64_t s = 0; s < n;) {
+        int64_t e = s + 1;
+        while (e < n && keyed[e].first == keyed[s].first) ++e;
+        double acc[3] = {0, 0, 0};
+        for (int64_t k = s; k < e; ++k)
+            for (int d = 0; d < 3; ++d) acc[d] += points[3 * keyed[k].second + d];
+        for (int d = 0; d < 3; ++d) out.push_back(acc[d] / double(e - s));
+        s = e;
+    }
+    return out;
+}
+
+Neighbours radius_neighbours(const double *points, int64_t n, double radius, int64_t max_nn, int nthreads) {
+    if (!(radius > 0) || max_nn < 1) throw std::invalid_argument("radius_neighbours: radius > 0, max_nn >= 1");
+    Neighbours out;
+    out.ptr.assign(n + 1, 0);
+    if (n == 0) return out;
+    if (n > std::numeric_limits<int32_t>::max()) throw std::invalid_argument("radius_neighbours: too many points");
+    double lo[3];
+    cloud_min(points, n, lo);
+    const double r2 = radius * radius;
+    // the grid: cells of the radius, so that a query's neighbours lie in its cell and the 26 around it
+    std::vector<std::pair<uint64_t, int64_t>> keyed(n);
+    std::vector<int64_t> cx(3 * n);
+    for (int64_t i = 0; i < n; ++i) {
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor((points[3 * i + d] - lo[d]) / radius) + 1;  // one empty cell below
+            if (!(f < double(kAxisMax)))
+                throw std::invalid_argument("radius_neighbours: the cloud spans more than 2^21 cells of the radius");
+            cx[3 * i + d] = int64_t(f);
+        }
+        keyed[i] = {pack(cx[3 * i], cx[3 * i + 1], cx[3 * i + 2]), i};
+    }
+    sort_keyed(keyed);
+    std::vector<uint64_t> cell_key;
+    std::vector<int64_t> cell_start;
+    std::vector<double> sorted(3 * n);
+    std::vector<int32_t> order(n);
+    for (int64_t k = 0; k < n; ++k) {
+        if (k == 0 || keyed[k].first != keyed[k - 1].first) {
+            cell_key.push_back(keyed[k].first);
+            cell_start.push_back(k);
+        }
+        order[k] = int32_t(keyed[k].second);
+        for (int d = 0; d < 3; ++d) sorted[3 * k + d] = points[3 * keyed[k].second + d];
+    }
+    const int64_t ncell = int64_t(cell_key.size());
+    cell_start.push_back(n);
+
+    const int64_t cap = max_nn;
+    std::vector<int32_t> slot_idx(size_t(n) * cap);
+    std::vector<double> slot_d2(size_t(n) * cap);
+    std::vector<int32_t> count(n, 0);
+    nthreads = resolve_threads(nthreads, n);
+    DynamicRange range(0, ncell, 16);
+    parallel_region(nthreads, [&](int) {
+        std::vector<int64_t> cand;  // positions in `sorted` of the 27 cells' points
+        std::vector<std::pair<double, int32_t>> hits;
+        int64_t c0, c1;
+        while (range.next(c0, c1)) {
+            for (int64_t c = c0; c < c1; ++c) {
+                const int64_t first = cell_start[c];
+                const int64_t *g = &cx[3 * order[first]];
+                cand.clear();
+                for (int64_t dx = -1; dx <= 1; ++dx)
+                    for (int64_t dy = -1; dy <= 1; ++dy) {
+                        // the cells (dx, dy, -1..1) are consecutive keys: one search for the run
+                        const uint64_t k0 = pack(g[0] + dx, g[1] + dy, g[2] - 1);
+                        const uint64_t k1 = pack(g[0] + dx, g[1] + dy, g[2] + 1);
+                        auto it = std::lower_bound(cell_key.begin(), cell_key.end(), k0);
+                        for (; it != cell_key.end() && *it <= k1; ++it) {
+                            const int64_t cc = it - cell_key.begin();
+                            for (int64_t s = cell_start[cc]; s < cell_start[cc + 1]; ++s) cand.push_back(s);
+                        }
+                    }
+                for (int64_t s = first; s < cell_start[c + 1]; ++s) {
+                    const double *q = &sorted[3 * s];
+                    hits.clear();
+                    for (int64_t t : cand) {
+                        const double d2 = sq_dist(q, &sorted[3 * t]);
+                        if (d2 < r2) hits.emplace_back(d2, order[t]);
+                    }
+                    const int64_t keep = std::min<int64_t>(int64_t(hits.size()), cap);
+                    if (keep < int64_t(hits.size()))
+                        std::partial_sort(hits.begin(), hits.begin() + keep, hits.end());
+                    else
+                        std::sort(hits.begin(), hits.end());
+                    const int64_t i = order[s];
+                    count[i] = int32_t(keep);
+                    for (int64_t k = 0; k < keep; ++k) {
+                        slot_d2[size_t(i) * cap + k] = hits[k].first;
+                        slot_idx[size_t(i) * cap + k] = hits[k].second;
+                    }
+                }
+            }
+        }
+    });
+    for (int64_t i = 0; i < n; ++i) out.ptr[i + 1] = out.ptr[i] + count[i];
+    out.idx.resize(out.ptr[n]);
+    out.d2.resize(out.ptr[n]);
+    parallel_for(0, n, nthreads, 1024, [&](int64_t i, int) {
+        std::copy_n(&slot_idx[size_t(i) * cap], count[i], &out.idx[out.ptr[i]]);
+        std::copy_n(&slot_d2[size_t(i) * cap], count[i], &out.d2[out.ptr[i]]);
+    });
+    return out;
+}
+
+std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const double *viewpoint,
+                                int nthreads) {
+    std::vector<double> normals(3 * n);
+    nthreads = resolve_threads(nthreads, n);
+    parallel_for(0, n, nthreads, 512, [&](int64_t i, int) {
+        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+        V3 nrm;
+        if (e - b >= 3) {
+            double c[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+            for (int64_t k = b; k < e; ++k) {
+                const double *p = &points[3 * nb.idx[k]];
+                c[0] += p[0];
+                c[1] += p[1];
+                c[2] += p[2];
+                c[3] += p[0] * p[0];
+                c[4] += p[0] * p[1];
+                c[5] += p[0] * p[2];
+                c[6] += p[1] * p[1];
+                c[7] += p[1] * p[2];
+                c[8] += p[2] * p[2];
+            }
+            const double cnt = double(e - b);
+            for (double &v : c) v /= cnt;
+            const Sym3 cov{c[3] - c[0] * c[0], c[4] - c[0] * c[1], c[5] - c[0] * c[2],
+                           c[6] - c[1] * c[1], c[7] - c[1] * c[2], c[8] - c[2] * c[2]};
+            nrm = smallest_eigenvector(cov);
+        } else {
+            nrm = smallest_eigenvector({1, 0, 0, 1, 0, 1});  // Open3D's identity covariance: z
+        }
+        if (dot(nrm, nrm) == 0.0) nrm = {0, 0, 1};
+        if (viewpoint) {
+            const V3 ref{viewpoint[0] - points[3 * i], viewpoint[1] - points[3 * i + 1],
+                         viewpoint[2] - points[3 * i + 2]};
+            if (dot(nrm, ref) < 0.0) nrm = {-nrm.x, -nrm.y, -nrm.z};
+        }
+        normals[3 * i] = nrm.x;
+        normals[3 * i + 1] = nrm.y;
+        normals[3 * i + 2] = nrm.z;
+    });
+    return normals;
+}
+
+std::vector<double> fpfh_features(const double *points, const double *normals, int64_t n, const Neighbours &nb,
+                                  const int64_t *rows, int64_t nrows, int nthreads) {
+    if (!rows) nrows = n;
+    for (int64_t r = 0; rows && r < nrows; ++r)
+        if (rows[r] < 0 || rows[r] >= n) throw std::invalid_argument("fpfh_features: a row is out of range");
+    nthreads = resolve_threads(nthreads, n);
+    // SPFH of every point a described row reaches (all of them when every row is described)
+    std::vector<unsigned char> need(n, rows ? 0 : 1);
+    if (rows)
+        for (int64_t r = 0; r < nrows; ++r) {
+            const int64_t i = rows[r];
+            need[i] = 1;
+            for (int64_t k = nb.ptr[i]; k < nb.ptr[i + 1]; ++k) need[nb.idx[k]] = 1;
+        }
+    std::vector<double> spfh(size_t(n) * 33, 0.0);
+    parallel_for(0, n, nthreads, 256, [&](int64_t i, int) {
+        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+        if (!need[i] || e - b <= 1) return;
+        const double incr = 100.0 / double(e - b - 1);
+        double *h = &spfh[size_t(i) * 33];
+        for (int64_t k = b + 1; k < e; ++k) {  // position 0 is the point itself
+            const int64_t j = nb.idx[k];
+            add_pair(&points[3 * i], &normals[3 * i], &points[3 * j], &normals[3 * j], incr, h);
+        }
+    });
+    std::vector<double> out(size_t(nrows) * 33, 0.0);
+    parallel_for(0, nrows, nthreads, 256, [&](int64_t r, int) {
+        const int64_t i = rows ? rows[r] : r;
+        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+        if (e - b <= 1) return;
+        double *f = &out[size_t(r) * 33];
+        double sum[3] = {0.0, 0.0, 0.0};
+        for (int64_t k = b + 1; k < e; ++k) {
+            const double dist = nb.d2[k];
+            if (dist == 0.0) continue;
+            const double *s = &spfh[size_t(nb.idx[k]) * 33];
+            for (int j = 0; j < 33; ++j) {
+                const double val = s[j] / dist;
+                sum[j / 11] += val;
+                f[j] += val;
+            }
+        }
+        for (double &s : sum)
+            if (s != 0.0) s = 100.0 / s;
+        const double *own = &spfh[size_t(i) * 33];
+        for (int j = 0; j < 33; ++j) {
+            f[j] *= sum[j / 11];
+            f[j] += own[j];
+        }
+    });
+    return out;
+}
+
+}  // namespace fastmac

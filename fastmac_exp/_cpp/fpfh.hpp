@@ -1,0 +1,51 @@
+// The FPFH front end in the core (fpfh.cpp): voxel keypoints, normals, SPFH and FPFH with Open3D's
+// definitions and bins (Open3D 0.20's VoxelDownSample, EstimateNormals with a hybrid search,
+// OrientNormalsTowardsCameraLocation and ComputeFPFHFeature are the reference; tests/test_fpfh_core.py
+// holds them equal), and the exact feature matcher (feature_match.cpp).
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+namespace fastmac {
+
+// Open3D's voxel_down_sample: the centroid of the points of every occupied voxel of the grid anchored at
+// min(points) - voxel / 2 (sums in input order, as Open3D). Keypoints are ordered by their voxel (x, then y,
+// then z index), not in Open3D's hash-map order. Throws std::invalid_argument when the cloud spans more
+// than 2^21 voxels along an axis.
+std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads);
+
+// Neighbourhoods of a cloud within a radius, as Open3D's hybrid search returns them: the points with squared
+// distance < radius^2 (the query itself included), nearest first (ties: lower index), at most max_nn.
+struct Neighbours {
+    std::vector<int64_t> ptr;  // n + 1 offsets
+    std::vector<int32_t> idx;
+    std::vector<double> d2;
+};
+Neighbours radius_neighbours(const double *points, int64_t n, double radius, int64_t max_nn, int nthreads);
+
+// Unit normals from the neighbourhoods (PCA: the eigenvector of the smallest eigenvalue of the covariance
+// of >= 3 neighbours, else (0, 0, 1)), flipped towards `viewpoint` when it is given (Open3D's
+// orient_normals_towards_camera_location); n x 3.
+std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const double *viewpoint,
+                                int nthreads);
+
+// Open3D's FPFH (33 bins: 11 for each of the three pair angles) of the rows `rows` (all when null) of a
+// cloud with normals, from the neighbourhoods `nb` of the feature radius; rows x 33, row-major. SPFH is
+// computed for every point that a described row reaches.
+std::vector<double> fpfh_features(const double *points, const double *normals, int64_t n, const Neighbours &nb,
+                                  const int64_t *rows, int64_t nrows, int nthreads);
+
+// Exact nearest rows in feature space, fast (feature_match.cpp): for every row of a (na x dim) the index of
+// the nearest row of b (nb x dim), equal to nearest_rows' (the same float64 arithmetic decides, ties to the
+// lowest index), and the squared distance to the runner-up to float32 accuracy (inf when nb < 2).
+// Float32 products screen all of b; a row whose winner is not clear of its runner-up by the float32 error
+// bound is settled by a float64 scan.
+struct Matches {
+    std::vector<int64_t> idx;
+    std::vector<double> d2_second;
+    int64_t settled_in_float64 = 0;  // rows the screen could not decide
+};
+Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t nb, int64_t dim, int nthreads);
+
+}  // namespace fastmac
