@@ -437,7 +437,8 @@ nb::object radius_neighbours(const Points &points, double radius, int64_t max_nn
 // Normals and FPFH of a keypoint cloud (fpfh.hpp): the two neighbourhoods, PCA normals flipped towards
 // `viewpoint` (None: as the eigensolver gives them), FPFH of `rows` (None: every keypoint).
 nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t normal_max_nn, double feature_radius,
-                         int64_t feature_max_nn, nb::object viewpoint, nb::object rows, int num_threads) {
+                         int64_t feature_max_nn, nb::object viewpoint, nb::object rows, int num_threads,
+                         nb::object normals_in) {
     if (keypoints.shape(1) != 3) throw std::invalid_argument("fpfh_describe: keypoints must be (N, 3)");
     const int64_t n = (int64_t)keypoints.shape(0);
     double vp[3] = {0, 0, 0};
@@ -454,13 +455,23 @@ nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t 
         sel.assign(r.data(), r.data() + r.shape(0));
     }
     std::vector<double> normals, feat;
+    if (!normals_in.is_none()) {
+        auto nn = nb::cast<Points>(normals_in);
+        if ((int64_t)nn.shape(0) != n || nn.shape(1) != 3)
+            throw std::invalid_argument("fpfh_describe: normals must be (N, 3) like the keypoints");
+        normals.assign(nn.data(), nn.data() + 3 * n);
+    }
     {
         nb::gil_scoped_release nogil;
-        const fastmac::Neighbours nn =
-            fastmac::radius_neighbours(keypoints.data(), n, normal_radius, normal_max_nn, num_threads);
-        normals = fastmac::pca_normals(keypoints.data(), n, nn, has_vp ? vp : nullptr, num_threads);
+        // one search serves both when the normals' neighbourhood is a prefix of the feature's
         const fastmac::Neighbours fn =
             fastmac::radius_neighbours(keypoints.data(), n, feature_radius, feature_max_nn, num_threads);
+        const fastmac::Neighbours nn =
+            normal_radius <= feature_radius && normal_max_nn <= feature_max_nn
+                ? fastmac::nearest_prefix(fn, normal_radius, normal_max_nn)
+                : fastmac::radius_neighbours(keypoints.data(), n, normal_radius, normal_max_nn, num_threads);
+        if (normals.empty())
+            normals = fastmac::pca_normals(keypoints.data(), n, nn, has_vp ? vp : nullptr, num_threads);
         feat = fastmac::fpfh_features(keypoints.data(), normals.data(), n, fn, has_rows ? sel.data() : nullptr,
                                       has_rows ? (int64_t)sel.size() : n, num_threads);
     }
@@ -646,7 +657,8 @@ NB_MODULE(_mac_core, m) {
           "Open3D's hybrid search over a cloud itself: CSR dict(ptr, idx, d2), nearest first, at most max_nn");
     m.def("fpfh_describe", &fpfh_describe, "keypoints"_a, "normal_radius"_a, "normal_max_nn"_a, "feature_radius"_a,
           "feature_max_nn"_a, "viewpoint"_a = nb::none(), "rows"_a = nb::none(), "num_threads"_a = 0,
-          "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions");
+          "normals"_a = nb::none(),
+          "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions; given normals are used as they are");
     m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
           "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
           "to float32 accuracy, rows settled in float64)");

@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -55,10 +56,21 @@ void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
     }
 }
 
-inline double sq_dist(const double *a, const double *b) {
-    const double dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
-    return dx * dx + dy * dy + dz * dz;
+// A hit of a radius search as one integer, ordered as (squared distance, index): the bits of a
+// non-negative double order as its value, so the sort compares integers (no NaN-aware compares).
+using Hit = unsigned __int128;
+inline Hit make_hit(double d2, int32_t idx) {
+    uint64_t bits;
+    std::memcpy(&bits, &d2, 8);
+    return (Hit(bits) << 32) | Hit(uint32_t(idx));
 }
+inline double hit_d2(Hit h) {
+    const uint64_t bits = uint64_t(h >> 32);
+    double d2;
+    std::memcpy(&d2, &bits, 8);
+    return d2;
+}
+inline int32_t hit_idx(Hit h) { return int32_t(uint32_t(h)); }
 
 // --- the closed-form eigenvector of the smallest eigenvalue (Open3D's FastEigen3x3) ---------------------
 
@@ -184,6 +196,25 @@ inline int bin_of(double t) {  // t already scaled to [0, 11)
     return h < 0 ? 0 : (h >= 11 ? 10 : h);
 }
 
+// The bin of f0 = atan2(y, x), floor(11 (f0 + pi) / (2 pi)), without atan2 where a polynomial decides it:
+// the polynomial is within 1e-5 rad of atan (2e-5 in units of bins), so a value more than 1e-3 from a
+// bin edge is binned exactly; closer ones (and atan2's signed-zero cases at the edges) call atan2.
+inline int angle_bin(double y, double x) {
+    const double ax = std::fabs(x), ay = std::fabs(y);
+    const double hi = std::max(ax, ay), lo = std::min(ax, ay);
+    if (hi > 0 && std::isfinite(hi)) {
+        const double a = lo / hi, s = a * a;
+        double r = ((-0.0464964749 * s + 0.15931422) * s - 0.327622764) * s * a + a;
+        if (ay > ax) r = M_PI_2 - r;
+        if (x < 0) r = M_PI - r;
+        if (y < 0) r = -r;
+        const double t = 11 * (r + M_PI) / (2.0 * M_PI);
+        const double fl = std::floor(t);
+        if (t - fl > 1e-3 && fl + 1 - t > 1e-3) return bin_of(fl);
+    }
+    return bin_of(11 * (std::atan2(y, x) + M_PI) / (2.0 * M_PI));
+}
+
 // acos(|a1|) > acos(|a2|) without two acos calls where the order is clear: acos is decreasing with slope
 // <= -1, so a gap above a few ulps of pi/2 decides it; closer pairs take Open3D's own comparison.
 inline bool swap_ends(double a1, double a2) {
@@ -198,7 +229,8 @@ inline bool swap_ends(double a1, double a2) {
 // ComputePairFeatures and ComputeSPFHFeature).
 inline void add_pair(const double *p1, const double *n1, const double *p2, const double *n2, double incr,
                      double *h) {
-    double f0 = 0, f1 = 0, f2 = 0;
+    const double f0 = 0, f2 = 0;
+    double f1 = 0;
     V3 dp{p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2]};
     const double len = std::sqrt(dot(dp, dp));
     if (len != 0.0) {
@@ -218,13 +250,126 @@ inline void add_pair(const double *p1, const double *n1, const double *p2, const
             v = divide(v, vn);
             const V3 w = cross(a, v);
             f1 = dot(v, b);
-            f0 = std::atan2(dot(w, b), dot(a, b));
-            f2 = f2c;
+            h[angle_bin(dot(w, b), dot(a, b))] += incr;
+            h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
+            h[22 + bin_of(11 * (f2c + 1.0) * 0.5)] += incr;
+            return;
         }
     }
     h[bin_of(11 * (f0 + M_PI) / (2.0 * M_PI))] += incr;
     h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
     h[22 + bin_of(11 * (f2 + 1.0) * 0.5)] += incr;
+}
+
+
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
+#define FASTMAC_FPFH_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define FASTMAC_FPFH_CLONES
+#endif
+
+// Per-thread buffers of spfh_of: the neighbours' points and normals by axis, and each pair's results.
+struct PairScratch {
+    std::vector<double> px, py, pz, nx, ny, nz, t0, f1, f2, ok;
+    void resize(int64_t m) {
+        for (auto *v : {&px, &py, &pz, &nx, &ny, &nz, &t0, &f1, &f2, &ok}) v->resize(m);
+    }
+};
+
+// The three pair features of point 1 with each of m neighbours (add_pair's arithmetic, branch-free so that
+// it vectorises; built for AVX-512 and AVX2 besides the baseline, each lane doing the same IEEE operations).
+// t0 is f0's bin from the polynomial atan; ok[k] = 0 marks the pairs whose bins this cannot settle
+// (coincident points, a swap decided by rounding, a degenerate frame, f0 within 1e-3 of a bin edge): those
+// go through add_pair.
+FASTMAC_FPFH_CLONES
+void pair_features(int64_t m, const double *p1, const double *n1, PairScratch &w) {
+    const double ux = n1[0], uy = n1[1], uz = n1[2], qx = p1[0], qy = p1[1], qz = p1[2];
+    const double *__restrict px = w.px.data(), *__restrict py = w.py.data(), *__restrict pz = w.pz.data();
+    const double *__restrict nx = w.nx.data(), *__restrict ny = w.ny.data(), *__restrict nz = w.nz.data();
+    double *__restrict t0 = w.t0.data(), *__restrict f1o = w.f1.data(), *__restrict f2o = w.f2.data();
+    double *__restrict ok = w.ok.data();
+#pragma GCC ivdep
+    for (int64_t k = 0; k < m; ++k) {
+        const double dx0 = px[k] - qx, dy0 = py[k] - qy, dz0 = pz[k] - qz;
+        const double len = std::sqrt(dx0 * dx0 + dy0 * dy0 + dz0 * dz0);
+        const double mx = nx[k], my = ny[k], mz = nz[k];
+        const double a1 = (ux * dx0 + uy * dy0 + uz * dz0) / len;
+        const double a2 = (mx * dx0 + my * dy0 + mz * dz0) / len;
+        const double gap = std::fabs(a2) - std::fabs(a1);
+        const bool sw = gap > 0;
+        const double ax = sw ? mx : ux, ay = sw ? my : uy, az = sw ? mz : uz;  // the frame's normal
+        const double bx = sw ? ux : mx, by = sw ? uy : my, bz = sw ? uz : mz;  // the other normal
+        // both arms computed before each select: GCC if-converts (vectorises) only selects of ready values
+        const double mdx = -dx0, mdy = -dy0, mdz = -dz0, ma2 = -a2;
+        const double dx = sw ? mdx : dx0, dy = sw ? mdy : dy0, dz = sw ? mdz : dz0;
+        const double f2 = sw ? ma2 : a1;
+        double vx = dy * az - dz * ay, vy = dz * ax - dx * az, vz = dx * ay - dy * ax;
+        const double vn = std::sqrt(vx * vx + vy * vy + vz * vz);
+        vx /= vn, vy /= vn, vz /= vn;
+        const double wx = ay * vz - az * vy, wy = az * vx - ax * vz, wz = ax * vy - ay * vx;
+        const double f1 = vx * bx + vy * by + vz * bz;
+        const double y = wx * bx + wy * by + wz * bz, x = ax * bx + ay * by + az * bz;
+        const double fx = std::fabs(x), fy = std::fabs(y);
+        const bool steep = fy > fx;
+        const double hi = steep ? fy : fx, lo = steep ? fx : fy;
+        const double a = lo / hi, s2 = a * a;
+        const double r0 = ((-0.0464964749 * s2 + 0.15931422) * s2 - 0.327622764) * s2 * a + a;
+        const double r0c = M_PI_2 - r0;
+        const double r1 = steep ? r0c : r0;
+        const double r1c = M_PI - r1;
+        const double r2 = x < 0 ? r1c : r1;
+        const double r2n = -r2;
+        const double r = y < 0 ? r2n : r2;
+        const double t = 11 * (r + M_PI) / (2.0 * M_PI);
+        // floor(t) for |t| < 2^51 by rounding through 1.5 * 2^52 (std::floor does not vectorise); NaN stays NaN
+        const double rn = (t + 6755399441055744.0) - 6755399441055744.0;
+        const double rn1 = rn - 1.0;
+        const double fl = rn > t ? rn1 : rn;
+        // NaN (coincident points, a degenerate frame) fails every comparison, so it lands on the exact path
+        const bool plain = (t - fl > 1e-3) & (fl + 1 - t > 1e-3) & (std::fabs(gap) > 1e-12) & (vn > 0);
+        t0[k] = fl;
+        f1o[k] = f1;
+        f2o[k] = f2;
+        ok[k] = plain ? 1.0 : 0.0;
+    }
+}
+
+// SPFH of point i (Open3D's ComputeSPFHFeature) over its m neighbours `nbr` (the point itself excluded).
+void spfh_of(const double *points, const double *normals, int64_t i, const int32_t *nbr, int64_t m,
+             PairScratch &w, double *h) {
+    w.resize(m);
+    for (int64_t k = 0; k < m; ++k) {
+        const double *p = &points[3 * int64_t(nbr[k])], *nn = &normals[3 * int64_t(nbr[k])];
+        w.px[k] = p[0], w.py[k] = p[1], w.pz[k] = p[2];
+        w.nx[k] = nn[0], w.ny[k] = nn[1], w.nz[k] = nn[2];
+    }
+    pair_features(m, &points[3 * i], &normals[3 * i], w);
+    const double incr = 100.0 / double(m);
+    for (int64_t k = 0; k < m; ++k) {
+        if (w.ok[k] == 0.0) {
+            const int64_t j = nbr[k];
+            add_pair(&points[3 * i], &normals[3 * i], &points[3 * j], &normals[3 * j], incr, h);
+            continue;
+        }
+        h[bin_of(w.t0[k])] += incr;
+        h[11 + bin_of(11 * (w.f1[k] + 1.0) * 0.5)] += incr;
+        h[22 + bin_of(11 * (w.f2[k] + 1.0) * 0.5)] += incr;
+    }
+}
+
+// Open3D's weighted sum of the neighbours' SPFH (1 / squared distance) and the sum of each third. The
+// thirds are summed from the result, not term by term as Open3D does, so that the loop vectorises: the
+// same value up to rounding (~1e-16 relative).
+FASTMAC_FPFH_CLONES
+void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double *spfh, double *__restrict f,
+                  double sum[3]) {
+    for (int64_t k = 0; k < m; ++k) {
+        const double dist = d2[k];
+        if (dist == 0.0) continue;
+        const double *__restrict s = &spfh[size_t(nbr[k]) * 33];
+        for (int j = 0; j < 33; ++j) f[j] += s[j] / dist;
+    }
+    for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
 }
 
 }  // namespace
@@ -277,14 +422,17 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
     double lo[3];
     cloud_min(points, n, lo);
     const double r2 = radius * radius;
-    // the grid: cells of the radius, so that a query's neighbours lie in its cell and the 26 around it
+    // the grid: cells of half the radius, so that a query's neighbours lie within two cells of its own
+    // (5^3 cells of r / 2 hold 58 % of the points of 3^3 cells of r)
+    constexpr int64_t reach = 2;
+    const double cell = radius / reach;
     std::vector<std::pair<uint64_t, int64_t>> keyed(n);
     std::vector<int64_t> cx(3 * n);
     for (int64_t i = 0; i < n; ++i) {
         for (int d = 0; d < 3; ++d) {
-            const double f = std::floor((points[3 * i + d] - lo[d]) / radius) + 1;  // one empty cell below
-            if (!(f < double(kAxisMax)))
-                throw std::invalid_argument("radius_neighbours: the cloud spans more than 2^21 cells of the radius");
+            const double f = std::floor((points[3 * i + d] - lo[d]) / cell) + reach;  // empty cells below
+            if (!(f < double(kAxisMax - reach)))
+                throw std::invalid_argument("radius_neighbours: the cloud spans more than 2^20 cells of the radius");
             cx[3 * i + d] = int64_t(f);
         }
         keyed[i] = {pack(cx[3 * i], cx[3 * i + 1], cx[3 * i + 2]), i};
@@ -312,42 +460,56 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
     nthreads = resolve_threads(nthreads, n);
     DynamicRange range(0, ncell, 16);
     parallel_region(nthreads, [&](int) {
-        std::vector<int64_t> cand;  // positions in `sorted` of the 27 cells' points
-        std::vector<std::pair<double, int32_t>> hits;
+        // the 27 cells' points, gathered per cell of queries (coordinates by axis, so that the distance
+        // loop vectorises), then each query's hits sorted nearest first
+        std::vector<double> qx, qy, qz, dd;
+        std::vector<int32_t> qi;
+        std::vector<Hit> hits;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
                 const int64_t first = cell_start[c];
                 const int64_t *g = &cx[3 * order[first]];
-                cand.clear();
-                for (int64_t dx = -1; dx <= 1; ++dx)
-                    for (int64_t dy = -1; dy <= 1; ++dy) {
-                        // the cells (dx, dy, -1..1) are consecutive keys: one search for the run
-                        const uint64_t k0 = pack(g[0] + dx, g[1] + dy, g[2] - 1);
-                        const uint64_t k1 = pack(g[0] + dx, g[1] + dy, g[2] + 1);
+                qx.clear(), qy.clear(), qz.clear(), qi.clear();
+                for (int64_t dx = -reach; dx <= reach; ++dx)
+                    for (int64_t dy = -reach; dy <= reach; ++dy) {
+                        // the cells (dx, dy, -reach..reach) are consecutive keys: one search for the run
+                        const uint64_t k0 = pack(g[0] + dx, g[1] + dy, g[2] - reach);
+                        const uint64_t k1 = pack(g[0] + dx, g[1] + dy, g[2] + reach);
                         auto it = std::lower_bound(cell_key.begin(), cell_key.end(), k0);
-                        for (; it != cell_key.end() && *it <= k1; ++it) {
-                            const int64_t cc = it - cell_key.begin();
-                            for (int64_t s = cell_start[cc]; s < cell_start[cc + 1]; ++s) cand.push_back(s);
+                        if (it == cell_key.end() || *it > k1) continue;
+                        const int64_t s0 = cell_start[it - cell_key.begin()];
+                        auto last = std::upper_bound(it, std::min(it + (2 * reach + 1), cell_key.end()), k1);
+                        const int64_t s1 = cell_start[last - cell_key.begin()];
+                        for (int64_t t = s0; t < s1; ++t) {
+                            qx.push_back(sorted[3 * t]);
+                            qy.push_back(sorted[3 * t + 1]);
+                            qz.push_back(sorted[3 * t + 2]);
+                            qi.push_back(order[t]);
                         }
                     }
+                const int64_t nc = int64_t(qx.size());
+                dd.resize(nc);
                 for (int64_t s = first; s < cell_start[c + 1]; ++s) {
-                    const double *q = &sorted[3 * s];
-                    hits.clear();
-                    for (int64_t t : cand) {
-                        const double d2 = sq_dist(q, &sorted[3 * t]);
-                        if (d2 < r2) hits.emplace_back(d2, order[t]);
+                    const double px = sorted[3 * s], py = sorted[3 * s + 1], pz = sorted[3 * s + 2];
+                    for (int64_t t = 0; t < nc; ++t) {
+                        const double ex = px - qx[t], ey = py - qy[t], ez = pz - qz[t];
+                        dd[t] = ex * ex + ey * ey + ez * ez;
                     }
+                    hits.clear();
+                    for (int64_t t = 0; t < nc; ++t)
+                        if (dd[t] < r2) hits.push_back(make_hit(dd[t], qi[t]));
                     const int64_t keep = std::min<int64_t>(int64_t(hits.size()), cap);
-                    if (keep < int64_t(hits.size()))
-                        std::partial_sort(hits.begin(), hits.begin() + keep, hits.end());
-                    else
-                        std::sort(hits.begin(), hits.end());
+                    if (keep < int64_t(hits.size())) {
+                        std::nth_element(hits.begin(), hits.begin() + keep, hits.end());
+                        hits.resize(keep);
+                    }
+                    std::sort(hits.begin(), hits.end());
                     const int64_t i = order[s];
                     count[i] = int32_t(keep);
                     for (int64_t k = 0; k < keep; ++k) {
-                        slot_d2[size_t(i) * cap + k] = hits[k].first;
-                        slot_idx[size_t(i) * cap + k] = hits[k].second;
+                        slot_d2[size_t(i) * cap + k] = hit_d2(hits[k]);
+                        slot_idx[size_t(i) * cap + k] = hit_idx(hits[k]);
                     }
                 }
             }
@@ -360,6 +522,27 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         std::copy_n(&slot_idx[size_t(i) * cap], count[i], &out.idx[out.ptr[i]]);
         std::copy_n(&slot_d2[size_t(i) * cap], count[i], &out.d2[out.ptr[i]]);
     });
+    return out;
+}
+
+Neighbours nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn) {
+    const int64_t n = int64_t(nb.ptr.size()) - 1;
+    const double r2 = radius * radius;
+    Neighbours out;
+    out.ptr.assign(n + 1, 0);
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t k = nb.ptr[i];
+        const int64_t e = std::min(nb.ptr[i + 1], nb.ptr[i] + max_nn);
+        while (k < e && nb.d2[k] < r2) ++k;
+        out.ptr[i + 1] = out.ptr[i] + (k - nb.ptr[i]);
+    }
+    out.idx.resize(out.ptr[n]);
+    out.d2.resize(out.ptr[n]);
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t m = out.ptr[i + 1] - out.ptr[i];
+        std::copy_n(&nb.idx[nb.ptr[i]], m, &out.idx[out.ptr[i]]);
+        std::copy_n(&nb.d2[nb.ptr[i]], m, &out.d2[out.ptr[i]]);
+    }
     return out;
 }
 
@@ -420,15 +603,16 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
             for (int64_t k = nb.ptr[i]; k < nb.ptr[i + 1]; ++k) need[nb.idx[k]] = 1;
         }
     std::vector<double> spfh(size_t(n) * 33, 0.0);
-    parallel_for(0, n, nthreads, 256, [&](int64_t i, int) {
-        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
-        if (!need[i] || e - b <= 1) return;
-        const double incr = 100.0 / double(e - b - 1);
-        double *h = &spfh[size_t(i) * 33];
-        for (int64_t k = b + 1; k < e; ++k) {  // position 0 is the point itself
-            const int64_t j = nb.idx[k];
-            add_pair(&points[3 * i], &normals[3 * i], &points[3 * j], &normals[3 * j], incr, h);
-        }
+    DynamicRange spfh_range(0, n, 256);
+    parallel_region(nthreads, [&](int) {
+        PairScratch w;
+        int64_t lo, hi;
+        while (spfh_range.next(lo, hi))
+            for (int64_t i = lo; i < hi; ++i) {
+                const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+                if (!need[i] || e - b <= 1) continue;
+                spfh_of(points, normals, i, &nb.idx[b + 1], e - b - 1, w, &spfh[size_t(i) * 33]);
+            }
     });
     std::vector<double> out(size_t(nrows) * 33, 0.0);
     parallel_for(0, nrows, nthreads, 256, [&](int64_t r, int) {
@@ -437,16 +621,7 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
         if (e - b <= 1) return;
         double *f = &out[size_t(r) * 33];
         double sum[3] = {0.0, 0.0, 0.0};
-        for (int64_t k = b + 1; k < e; ++k) {
-            const double dist = nb.d2[k];
-            if (dist == 0.0) continue;
-            const double *s = &spfh[size_t(nb.idx[k]) * 33];
-            for (int j = 0; j < 33; ++j) {
-                const double val = s[j] / dist;
-                sum[j / 11] += val;
-                f[j] += val;
-            }
-        }
+        weighted_sum(&nb.idx[b + 1], &nb.d2[b + 1], e - b - 1, spfh.data(), f, sum);
         for (double &s : sum)
             if (s != 0.0) s = 100.0 / s;
         const double *own = &spfh[size_t(i) * 33];

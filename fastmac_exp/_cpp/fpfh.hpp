@@ -24,6 +24,10 @@ struct Neighbours {
 };
 Neighbours radius_neighbours(const double *points, int64_t n, double radius, int64_t max_nn, int nthreads);
 
+// The neighbourhoods of a smaller radius and count from those of a larger one (their nearest-first prefixes):
+// the same lists as radius_neighbours(radius, max_nn) when radius <= nb's radius and max_nn <= nb's max_nn.
+Neighbours nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn);
+
 // Unit normals from the neighbourhoods (PCA: the eigenvector of the smallest eigenvalue of the covariance
 // of >= 3 neighbours, else (0, 0, 1)), flipped towards `viewpoint` when it is given (Open3D's
 // orient_normals_towards_camera_location); n x 3.

@@ -1,8 +1,15 @@
-"""FPFH front end (spec section 1.7, the Python example): Open3D features, nearest neighbour in feature space.
+"""FPFH front end (spec section 1.7, the Python example): FPFH features, nearest neighbour in feature space.
 
 Pipeline per cloud: voxel downsampling -> normals (hybrid radius/kNN search) -> 33-D FPFH -> L2
 normalisation. Matching takes, for every source keypoint, its nearest target feature (one way, as MAC's
-demos do); `mutual=True` keeps only pairs that are each other's nearest neighbour.
+demos do); `mutual=True` keeps only pairs that are each other's nearest neighbour, `ratio_test=r` only
+those whose nearest feature is closer than r times the second nearest (Lowe's test).
+
+Two implementations (`impl`): "core", the C++ core's (fastmac_exp/_cpp/fpfh.cpp: one grid per radius,
+threaded), and "open3d", Open3D's, which is the reference: the core's keypoints are Open3D's (in another
+order), its normals equal Open3D's bit for bit and its histograms to 1e-9, except where a pair of
+neighbours has equal normal angles to rounding and Open3D's own compiled arithmetic picks the frame
+(tests/test_fpfh_core.py, docs/fpfh_core.md). "auto" takes the core where it is built.
 """
 
 from __future__ import annotations
@@ -11,11 +18,89 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.matching import correspondences_from_features
+from fastmac_exp.descriptors.matching import correspondences_from_features, correspondences_from_kept_sources
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
 MIN_POINTS = 10
+IMPLS = ("auto", "core", "open3d")
+
+
+def resolve_impl(impl: str) -> str:
+    """ "core" or "open3d" for a configured `impl` ("auto": the core where the extension is built)."""
+    from fastmac_exp import core
+
+    if impl not in IMPLS:
+        raise InputError(f"fpfh impl must be one of {IMPLS}, got {impl!r}")
+    if impl == "auto":
+        return "core" if core.available() else "open3d"
+    if impl == "core":
+        core.core()  # BackendUnavailable with the build instructions when it is missing
+    return impl
+
+
+def clean_points(points: np.ndarray, what: str) -> np.ndarray:
+    """The cloud as (N, 3) float64 with non-finite rows dropped."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
+    return np.ascontiguousarray(pts[np.isfinite(pts).all(axis=1)])
+
+
+def voxel_keypoints(points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "auto") -> np.ndarray:
+    """The voxel centroids of a cloud (Open3D's voxel_down_sample; the core's are the same points ordered by
+    voxel). Raises InputError when fewer than MIN_POINTS survive."""
+    if voxel is None or not voxel > 0:
+        raise InputError(f"FPFH voxel size must be positive, got {voxel}")
+    pts = clean_points(points, what)
+    if resolve_impl(impl) == "core":
+        from fastmac_exp import core
+
+        try:
+            kp = core.core().voxel_downsample(pts, float(voxel))
+        except ValueError as exc:
+            raise InputError(f"{what}: {exc}") from None
+    else:
+        from fastmac_exp._open3d import o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        kp = np.asarray(pcd.voxel_down_sample(float(voxel)).points, dtype=np.float64)
+    if len(kp) < MIN_POINTS:
+        raise InputError(
+            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
+            f"FPFH needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
+        )
+    return kp
+
+
+def core_fpfh(
+    keypoints: np.ndarray,
+    voxel: float,
+    normal_radius_factor: float = 2.0,
+    normal_max_nn: int = 30,
+    feature_radius_factor: float = 5.0,
+    feature_max_nn: int = 100,
+    orient_normals: str = "origin",
+    rows: np.ndarray | None = None,
+    normalize: bool = True,
+) -> np.ndarray:
+    """The core's FPFH of `keypoints` (all, or the rows `rows`), normals oriented as `fpfh_features` says."""
+    from fastmac_exp import core
+
+    viewpoint = np.zeros(3) if orient_normals == "origin" else None
+    _, f = core.core().fpfh_describe(
+        np.ascontiguousarray(keypoints, dtype=np.float64),
+        normal_radius_factor * voxel,
+        int(normal_max_nn),
+        feature_radius_factor * voxel,
+        int(feature_max_nn),
+        viewpoint,
+        None if rows is None else np.ascontiguousarray(rows, dtype=np.int64),
+    )
+    if normalize:
+        norm = np.linalg.norm(f, axis=1, keepdims=True)
+        f /= np.where(norm > 0, norm, 1.0)
+    return f
 
 
 def fpfh_features(
@@ -28,8 +113,9 @@ def fpfh_features(
     normalize: bool = True,
     what: str = "cloud",
     orient_normals: str = "origin",
+    impl: str = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Voxel-downsample `points` and compute FPFH features.
+    """Voxel-downsample `points` and compute FPFH features (`impl`: "core", "open3d" or "auto", see above).
 
     Returns `(keypoints (M, 3) float64, features (M, 33) float64)`; the features are L2-normalised
     when `normalize` (an all-zero histogram stays zero). Raises InputError when fewer than 10 points
@@ -46,29 +132,22 @@ def fpfh_features(
     rotation invariant. "open3d" reproduces MAC's Python example (spec 1.7); MAC's C++ demo orients towards
     the viewpoint like "origin".
     """
+    if orient_normals not in ("open3d", "origin"):
+        raise InputError(f"orient_normals must be 'open3d' or 'origin', got {orient_normals!r}")
+    impl = resolve_impl(impl)
+    kp = voxel_keypoints(points, voxel, what, impl)
+    if impl == "core":
+        f = core_fpfh(kp, voxel, normal_radius_factor, normal_max_nn, feature_radius_factor, feature_max_nn,
+                      orient_normals, normalize=normalize)  # fmt: skip
+        return kp, f
     from fastmac_exp._open3d import o3d
 
-    if voxel is None or not voxel > 0:
-        raise InputError(f"FPFH voxel size must be positive, got {voxel}")
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    down = pcd.voxel_down_sample(float(voxel))
-    m = len(down.points)
-    if m < MIN_POINTS:
-        raise InputError(
-            f"{what} has {m} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-            f"FPFH needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
-        )
+    down = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp))
     down.estimate_normals(
         o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=int(normal_max_nn))
     )
     if orient_normals == "origin":
         down.orient_normals_towards_camera_location(np.zeros(3))
-    elif orient_normals != "open3d":
-        raise InputError(f"orient_normals must be 'open3d' or 'origin', got {orient_normals!r}")
     feat = o3d.pipelines.registration.compute_fpfh_feature(
         down,
         o3d.geometry.KDTreeSearchParamHybrid(
@@ -83,32 +162,54 @@ def fpfh_features(
 
 
 def nearest_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Index of the nearest row of `b` (Euclidean) for every row of `a`.
+    """Index of the nearest row of `b` (Euclidean) for every row of `a` (ties: the lowest index).
 
-    In 33 dimensions a k-d tree visits most of its leaves: the C++ core's brute force (float64, ties to
-    the lowest index) takes ~0.1 s on 10,000 x 10,000 FPFH features where scipy's cKDTree took 0.5-1.3 s
-    (synthetic KITTI-like pairs, 2 cores). Without the core, cKDTree.
+    The C++ core screens all pairs in float32 and settles in float64 every row whose winner the float32
+    error bound cannot separate from its runner-up, so the answer is its float64 brute force's
+    (`core.nearest_rows`, the reference) at about half the cost: in 33 dimensions a k-d tree visits most
+    of its leaves (scipy's cKDTree took 0.5-1.3 s on 10,000 x 10,000 FPFH features). Without the core,
+    cKDTree.
     """
+    return nearest_rows_and_runner_up(a, b)[0]
+
+
+def nearest_rows_and_runner_up(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(nearest row of `b` for every row of `a`, squared distance to the second nearest row; the latter to
+    float32 accuracy with the core, ~1e-5 for unit rows)."""
     from fastmac_exp import core
 
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    b = np.ascontiguousarray(b, dtype=np.float64)
     if core.available():
-        return core.core().nearest_rows(a, b)
-    return cKDTree(b).query(a, k=1)[1].astype(np.int64)
+        idx, second, _ = core.core().nearest_rows_fast(a, b)
+        return idx, second
+    k = min(2, len(b))
+    d, i = cKDTree(b).query(a, k=k)
+    if k == 1:
+        return np.asarray(i, dtype=np.int64).reshape(-1), np.full(len(a), np.inf)
+    return i[:, 0].astype(np.int64), d[:, 1] ** 2
 
 
 def match_features(
-    src_feat: np.ndarray, tgt_feat: np.ndarray, mutual: bool = False
+    src_feat: np.ndarray, tgt_feat: np.ndarray, mutual: bool = False, ratio_test: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest target feature for every source feature: (src_idx, tgt_idx, feature distance)."""
+    """Nearest target feature for every source feature: (src_idx, tgt_idx, feature distance).
+
+    `mutual` keeps the pairs that are each other's nearest neighbour; `ratio_test` in (0, 1) keeps those
+    whose nearest distance is below `ratio_test` times the second nearest (Lowe's test; 0: off)."""
+    if not 0.0 <= ratio_test < 1.0:
+        raise InputError(f"ratio_test must be in [0, 1) (0 = off), got {ratio_test}")
     s = np.ascontiguousarray(src_feat, dtype=np.float64)
     t = np.ascontiguousarray(tgt_feat, dtype=np.float64)
-    nn = nearest_rows(s, t)
+    nn, second = nearest_rows_and_runner_up(s, t)
     dist = np.linalg.norm(s - t[nn], axis=1)
-    src_idx = np.arange(len(s))
+    keep = np.ones(len(s), dtype=bool)
+    if ratio_test > 0:
+        keep &= dist < ratio_test * np.sqrt(second)
     if mutual:
-        keep = nearest_rows(t, s)[nn] == src_idx
-        src_idx, nn, dist = src_idx[keep], nn[keep], dist[keep]
-    return src_idx, nn, dist
+        keep &= nearest_rows(t, s)[nn] == np.arange(len(s))
+    src_idx = np.flatnonzero(keep)
+    return src_idx, nn[keep], dist[keep]
 
 
 class FPFHDescriptor(FeatureDescriptor):
@@ -116,7 +217,9 @@ class FPFHDescriptor(FeatureDescriptor):
 
     The defaults reproduce MAC's Python example at voxel 0.05: normals r = 0.1 (30 nn), FPFH r = 0.25
     (100 nn). `max_correspondences` caps the output by a random subset drawn with the call's rng
-    (0 = no cap).
+    (0 = no cap). With one-way matching and the core, only the source keypoints the cap keeps are
+    described and matched (the same draw and output as describing them all). `impl`: "auto", "core" or
+    "open3d" (module docstring); `mutual`, `ratio_test`: match_features.
     """
 
     name = "fpfh"
@@ -133,6 +236,8 @@ class FPFHDescriptor(FeatureDescriptor):
         max_correspondences: int = 5000,
         orient_normals: str = "origin",
         graph_key: str | None = None,
+        impl: str = "auto",
+        ratio_test: float = 0.0,
     ) -> None:
         super().__init__(graph_key)
         if voxel_size is not None and not voxel_size > 0:
@@ -153,6 +258,10 @@ class FPFHDescriptor(FeatureDescriptor):
         if orient_normals not in ("open3d", "origin"):
             raise InputError(f"orient_normals must be 'open3d' or 'origin', got {orient_normals!r}")
         self.orient_normals = orient_normals
+        self.impl = resolve_impl(impl)
+        if not 0.0 <= ratio_test < 1.0:
+            raise InputError(f"fpfh ratio_test must be in [0, 1) (0 = off), got {ratio_test}")
+        self.ratio_test = float(ratio_test)
 
     def features(
         self, points: np.ndarray, voxel: float, what: str = "cloud"
@@ -166,7 +275,22 @@ class FPFHDescriptor(FeatureDescriptor):
             self.feature_max_nn,
             what=what,
             orient_normals=self.orient_normals,
+            impl=self.impl,
         )
 
+    def keypoints(self, points: np.ndarray, voxel: float, what: str = "cloud") -> tuple[float, np.ndarray]:
+        """(the voxel, the keypoints): what `features_of` needs of the cloud (matching.py calls both)."""
+        return voxel, voxel_keypoints(points, voxel, what, self.impl)
+
+    def features_of(self, voxel: float, kp: np.ndarray, rows: np.ndarray, what: str = "cloud") -> np.ndarray:
+        """The core's FPFH of the keypoints `rows` only (their neighbourhoods in the whole keypoint cloud)."""
+        return core_fpfh(kp, voxel, self.normal_radius_factor, self.normal_max_nn, self.feature_radius_factor,
+                         self.feature_max_nn, self.orient_normals, rows=rows)  # fmt: skip
+
+    def _match(self, src_f, tgt_f, mutual):
+        return match_features(src_f, tgt_f, mutual, self.ratio_test)
+
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
-        return correspondences_from_features(self, pair, rng, match_features)
+        if self.impl == "core" and not self.mutual and not self.ratio_test:
+            return correspondences_from_kept_sources(self, pair, rng, self._match)
+        return correspondences_from_features(self, pair, rng, self._match)

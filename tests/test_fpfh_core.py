@@ -1,0 +1,298 @@
+"""The C++ core's FPFH front end against Open3D, its reference, and the exact feature matcher against the
+float64 brute force (fastmac_exp/_cpp/fpfh.cpp, feature_match.cpp; docs/fpfh_core.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fastmac_exp import core
+from fastmac_exp.descriptors.fpfh import FPFHDescriptor, fpfh_features, match_features
+from fastmac_exp.descriptors.matching import correspondences_from_features
+from fastmac_exp.errors import InputError
+from fastmac_exp.types import Pair
+
+pytestmark = pytest.mark.skipif(not core.available(), reason="C++ core not built")
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def scan(seed: int = 0, n: int = 6000) -> np.ndarray:
+    """A small scan-like cloud: a floor, two walls and a box, with noise."""
+    rng = np.random.default_rng(seed)
+    k = n // 4
+    floor = np.c_[rng.uniform(-2, 2, k), rng.uniform(-2, 2, k), rng.normal(0, 0.003, k)]
+    wall = np.c_[rng.uniform(-2, 2, k), np.full(k, 2.0) + rng.normal(0, 0.003, k), rng.uniform(0, 1.5, k)]
+    side = np.c_[np.full(k, -2.0) + rng.normal(0, 0.003, k), rng.uniform(-2, 2, k), rng.uniform(0, 1.5, k)]
+    u = rng.uniform(-0.3, 0.3, (k, 3))
+    face = rng.integers(0, 3, k)
+    u[np.arange(k), face] = np.sign(rng.normal(size=k)) * 0.3
+    return np.vstack([floor, wall, side, u + [0.5, 0.5, 0.3]]) + [0.3, -0.1, 0.2]
+
+
+def kitti_cloud() -> tuple[np.ndarray, float]:
+    from fastmac_exp.datasets.user_pairs import SharedRealPairs
+
+    if not (SHARED / "pairs.json").is_file():
+        pytest.skip("shared real data absent")
+    pair = SharedRealPairs(root=SHARED, ids=["kitti00_95_to_94"]).load(0)
+    return pair.src_cloud, pair.voxel_size
+
+
+def open3d_reference(kp: np.ndarray, voxel: float, orient: str) -> tuple[np.ndarray, np.ndarray]:
+    from fastmac_exp._open3d import o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    if orient == "origin":
+        pcd.orient_normals_towards_camera_location(np.zeros(3))
+    f = o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+    )
+    return np.asarray(pcd.normals), np.asarray(f.data).T
+
+
+def _pair_bins(p1, n1, p2, n2, swap):
+    """Open3D's three pair features (ComputePairFeatures) with the frame chosen by `swap`, as continuous
+    bin positions (11 bins each), for arrays of pairs."""
+    d = p2 - p1
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    a1 = np.einsum("ij,ij->i", n1, d) / length[:, 0]
+    a2 = np.einsum("ij,ij->i", n2, d) / length[:, 0]
+    s = swap[:, None]
+    u, w2, d = np.where(s, n2, n1), np.where(s, n1, n2), np.where(s, -d, d)
+    f2 = np.where(swap, -a2, a1)
+    v = np.cross(d, u)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    w = np.cross(u, v)
+    f1 = np.einsum("ij,ij->i", v, w2)
+    f0 = np.arctan2(np.einsum("ij,ij->i", w, w2), np.einsum("ij,ij->i", u, w2))
+    return np.c_[11 * (f0 + np.pi) / (2 * np.pi), 11 * (f1 + 1) * 0.5, 11 * (f2 + 1) * 0.5]
+
+
+def tie_rows(kp: np.ndarray, normals: np.ndarray, radius: float, max_nn: int) -> np.ndarray:
+    """Rows whose FPFH depends on a pair that rounding decides, through the row's own SPFH or a neighbour's:
+    the two normals make angles with the line between the points that are equal to 1e-12 (Open3D compares
+    their acos to pick the frame) and the bins differ between the two frames, or a feature lies within 1e-9
+    of a bin edge (e.g. f0 = atan2(~0, -1) for opposite normals: bin 0 or 10 by the sign of a rounding
+    error)."""
+    nb = core.core().radius_neighbours(kp, radius, max_nn)
+    ptr, idx = nb["ptr"], nb["idx"]
+    owner = np.repeat(np.arange(len(kp)), np.diff(ptr))
+    first = np.zeros(len(idx), dtype=bool)
+    first[ptr[:-1][np.diff(ptr) > 0]] = True  # position 0 is the point itself
+    i, j = owner[~first], idx[~first]
+    p1, p2, n1, n2 = kp[i], kp[j], normals[i], normals[j]
+    d = p2 - p1
+    length = np.linalg.norm(d, axis=1)
+    gap = np.abs(np.einsum("ij,ij->i", n2, d)) / length - np.abs(np.einsum("ij,ij->i", n1, d)) / length
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_keep = _pair_bins(p1, n1, p2, n2, np.zeros(len(i), dtype=bool))
+        t_swap = _pair_bins(p1, n1, p2, n2, np.ones(len(i), dtype=bool))
+    bins = lambda t: np.clip(np.floor(t), 0, 10)  # noqa: E731
+    frame_tie = (np.abs(gap) <= 1e-12) & np.any(bins(t_keep) != bins(t_swap), axis=1)
+    t = np.where((gap > 0)[:, None], t_swap, t_keep)
+    edge = np.any(np.abs(t - np.round(t)) <= 1e-9, axis=1) | ~np.isfinite(t).all(axis=1)
+    bad_spfh = np.zeros(len(kp), dtype=bool)
+    bad_spfh[i[frame_tie | edge]] = True
+    reach = bad_spfh.copy()
+    np.logical_or.at(reach, owner, bad_spfh[idx])
+    return reach
+
+
+# -- keypoints and neighbourhoods ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("voxel", [0.05, 0.13])
+def test_voxel_keypoints_are_open3ds_points(voxel):
+    from fastmac_exp._open3d import o3d
+
+    pts = scan(1)
+    ours = core.core().voxel_downsample(pts, voxel)
+    ref = np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel).points)
+    assert ours.shape == ref.shape
+    # the same centroids to the last bit (sums in input order), in another order
+    np.testing.assert_array_equal(ours[np.lexsort(ours.T)], ref[np.lexsort(ref.T)])
+
+
+def test_voxel_keypoints_ordered_by_voxel_and_deterministic():
+    pts = scan(2)
+    a = core.core().voxel_downsample(pts, 0.1, num_threads=1)
+    b = core.core().voxel_downsample(pts, 0.1, num_threads=2)
+    np.testing.assert_array_equal(a, b)
+    cells = np.floor((a - (pts.min(0) - 0.05)) / 0.1).astype(np.int64)
+    keys = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+    assert np.all(np.diff(keys) > 0)
+
+
+@pytest.mark.parametrize("max_nn", [5, 30, 1000])
+def test_radius_neighbours_are_the_nearest_within_the_radius(max_nn):
+    pts = core.core().voxel_downsample(scan(3), 0.05)
+    r = 0.17
+    nb = core.core().radius_neighbours(pts, r, max_nn)
+    d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+    for q in range(0, len(pts), 7):
+        inside = np.flatnonzero(d2[q] < r * r)
+        want = inside[np.lexsort((inside, d2[q, inside]))][:max_nn]
+        got = nb["idx"][nb["ptr"][q] : nb["ptr"][q + 1]]
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(nb["d2"][nb["ptr"][q] : nb["ptr"][q + 1]], d2[q, want])
+
+
+# -- normals and FPFH against Open3D ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("orient", ["origin", "open3d"])
+def test_normals_and_fpfh_equal_open3d_on_a_scan(orient):
+    voxel = 0.05
+    kp = core.core().voxel_downsample(scan(4), voxel)
+    ref_n, ref_f = open3d_reference(kp, voxel, orient)
+    viewpoint = np.zeros(3) if orient == "origin" else None
+    n, f = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, viewpoint)
+    np.testing.assert_array_equal(n, ref_n)  # the same arithmetic as Open3D's eigensolver
+    diff = np.abs(f - ref_f).max(axis=1)
+    ties = tie_rows(kp, n, 5 * voxel, 100)
+    assert np.all(diff[~ties] < 1e-9)
+
+
+def test_fpfh_equals_open3d_on_a_real_kitti_scan_but_for_rounding_ties():
+    pts, voxel = kitti_cloud()
+    kp = core.core().voxel_downsample(pts, voxel)
+    ref_n, ref_f = open3d_reference(kp, voxel, "origin")
+    n, f = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3))
+    np.testing.assert_array_equal(n, ref_n)
+    diff = np.abs(f - ref_f).max(axis=1)
+    ties = tie_rows(kp, n, 5 * voxel, 100)
+    assert np.all(diff[~ties] < 1e-9), np.flatnonzero((diff >= 1e-9) & ~ties)[:10]
+    # Open3D's frame choice at a tie follows its compiled arithmetic, not the pair: few rows differ
+    assert (diff >= 1e-9).sum() <= 0.005 * len(kp)
+
+
+def test_fpfh_of_chosen_rows_equals_those_rows_of_all():
+    voxel = 0.05
+    kp = core.core().voxel_downsample(scan(5), voxel)
+    rows = np.sort(np.random.default_rng(0).choice(len(kp), 200, replace=False))
+    _, every = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3))
+    _, some = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3), rows)
+    np.testing.assert_array_equal(some, every[rows])
+    _, one_thread = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3), num_threads=1)
+    np.testing.assert_array_equal(one_thread, every)
+
+
+def test_fpfh_hand_case_two_points():
+    # two points 1 m apart along x with normals z and (0.6, 0, 0.8). Either way the frame is the tilted
+    # normal's (|n.d| 0.6 > 0: acos is smaller), so both pairs give f2 = -0.6 (bin 2), v = (0, 1, 0),
+    # f1 = v.n = 0 (bin 5), f0 = atan2(0.6, 0.8) (bin 6): each SPFH is 100 in bins 6, 11 + 5, 22 + 2, and each
+    # FPFH its SPFH plus the other's, scaled to 100 a third.
+    kp = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    normals = np.array([[0.0, 0, 1], [0.6, 0, 0.8]])
+    want = np.zeros(33)
+    want[[int(np.floor(11 * (np.arctan2(0.6, 0.8) + np.pi) / (2 * np.pi))), 16, 24]] = 200.0
+    assert int(np.floor(11 * (np.arctan2(0.6, 0.8) + np.pi) / (2 * np.pi))) == 6
+    _, f = core.core().fpfh_describe(kp, 0.5, 30, 2.0, 10, None, normals=normals)
+    np.testing.assert_allclose(f, [want, want], atol=1e-12)
+    from fastmac_exp._open3d import o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    ref = o3d.pipelines.registration.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(2.0, 10))
+    np.testing.assert_allclose(np.asarray(ref.data).T, f, atol=1e-12)
+
+
+# -- the matcher --------------------------------------------------------------------------------------------
+
+
+def _features(seed: int, n: int, dim: int = 33) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    f = rng.gamma(0.3, 1.0, (n, dim)) * (rng.random((n, dim)) < 0.4)
+    norm = np.linalg.norm(f, axis=1, keepdims=True)
+    return f / np.where(norm > 0, norm, 1)
+
+
+@pytest.mark.parametrize("generic", [False, True])
+def test_fast_matcher_equals_float64_brute_force(monkeypatch, generic):
+    if generic:
+        monkeypatch.setenv("FASTMAC_FM", "generic")
+    a, b = _features(0, 700), _features(1, 1500)
+    # near-ties and exact ties: duplicated targets, a zero row, queries equal to targets
+    b[100] = b[7]
+    b[200] = 0.0
+    a[:20] = b[300:320]
+    a[20] = 0.0
+    a[21] = b[7]
+    ref = core.core().nearest_rows(a, b)
+    idx, second, settled = core.core().nearest_rows_fast(a, b)
+    np.testing.assert_array_equal(idx, ref)
+    assert idx[21] == 7  # the lower of two equal targets
+    assert settled >= 2
+    d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)
+    np.testing.assert_allclose(second, np.sort(d2, axis=1)[:, 1], atol=2e-5)
+    np.testing.assert_array_equal(core.core().nearest_rows_fast(a, b, num_threads=1)[0], idx)
+
+
+def test_fast_matcher_equals_brute_force_on_real_fpfh():
+    pts, voxel = kitti_cloud()
+    kp, f = fpfh_features(pts, voxel, impl="core")
+    a, b = f[::3], f[1::2]
+    np.testing.assert_array_equal(core.core().nearest_rows_fast(a, b)[0], core.core().nearest_rows(a, b))
+
+
+def test_match_features_mutual_and_ratio_test_by_hand():
+    src = np.array([[1.0, 0, 0], [0, 1.0, 0], [0.7, 0.7, 0]])
+    tgt = np.array([[0.9, 0.1, 0], [0.0, 0.95, 0.05], [0.71, 0.7, 0.0]])
+    si, ti, _ = match_features(src, tgt)
+    np.testing.assert_array_equal(ti, [0, 1, 2])
+    # nearest / second nearest distance: row 0 0.141 / 0.758 = 0.19, row 1 0.071 / 0.771 = 0.09,
+    # row 2 0.01 / 0.745 = 0.013
+    si, ti, _ = match_features(src, tgt, ratio_test=0.1)
+    np.testing.assert_array_equal(si, [1, 2])
+    si, ti, _ = match_features(src, tgt, ratio_test=0.05)
+    np.testing.assert_array_equal(si, [2])
+    si, _, _ = match_features(src, np.array([[1.0, 0, 0], [0.99, 0.01, 0]]), mutual=True)
+    np.testing.assert_array_equal(si, [0])
+    with pytest.raises(InputError, match="ratio_test"):
+        match_features(src, tgt, ratio_test=1.5)
+
+
+# -- the front end ----------------------------------------------------------------------------------------
+
+
+def _pair(seed: int = 6) -> Pair:
+    src = scan(seed)
+    angle = 0.3
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    gt = np.eye(4)
+    gt[:3, :3], gt[:3, 3] = R, [0.2, -0.1, 0.05]
+    tgt = src @ R.T + gt[:3, 3] + np.random.default_rng(seed).normal(0, 0.002, src.shape)
+    return Pair(name="scan", src_cloud=src, tgt_cloud=tgt, gt=gt, voxel_size=0.05, family="3dmatch")
+
+
+def test_describing_only_the_kept_sources_gives_the_same_correspondences():
+    pair = _pair()
+    desc = FPFHDescriptor(impl="core", max_correspondences=300)
+    kept = desc(pair, np.random.default_rng(3))
+    plain = correspondences_from_features(desc, pair, np.random.default_rng(3), desc._match)
+    np.testing.assert_array_equal(kept.src, plain.src)
+    np.testing.assert_array_equal(kept.tgt, plain.tgt)
+    np.testing.assert_array_equal(kept.scores, plain.scores)
+
+
+def test_core_and_open3d_front_ends_give_the_same_matches():
+    pair = _pair(7)
+    c = FPFHDescriptor(impl="core", max_correspondences=0)(pair, np.random.default_rng(0))
+    o = FPFHDescriptor(impl="open3d", max_correspondences=0)(pair, np.random.default_rng(0))
+    assert len(c.src) == len(o.src)
+    key = lambda corr: np.lexsort(np.c_[corr.src, corr.tgt].T)  # noqa: E731
+    same = np.all(np.c_[c.src, c.tgt][key(c)] == np.c_[o.src, o.tgt][key(o)], axis=1)
+    assert same.mean() > 0.995
+    assert abs(c.labels.mean() - o.labels.mean()) <= 0.01 * o.labels.mean()
+
+
+def test_bad_impl_and_voxel_say_what():
+    with pytest.raises(InputError, match="impl"):
+        FPFHDescriptor(impl="pcl")
+    with pytest.raises(InputError, match="after voxel downsampling"):
+        fpfh_features(scan(0)[:50], 10.0, impl="core", what="pair 'x': source cloud")
+    with pytest.raises(InputError, match="2\\^21 voxels"):
+        fpfh_features(np.array([[0.0, 0, 0], [1e9, 0, 0]] * 10), 1e-3, impl="core")
