@@ -25,10 +25,19 @@ COMPUTED_FAMILIES = tuple(f.name for f in FAMILIES.values() if f.resolution_from
 
 
 def mesh_resolution(points: np.ndarray) -> float:
-    """Mean distance of each point to its nearest other point (a duplicate point contributes 0)."""
+    """Mean distance of each point to its nearest other point (a duplicate point contributes 0).
+
+    The C++ core's grid search where it is built (exact; 300,000 points in tens of ms on two threads),
+    else scipy's k-d tree."""
+    from fastmac_exp import core
+
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
         raise InputError(f"mesh resolution needs an (N >= 2, 3) cloud, got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise InputError("mesh resolution: the cloud has non-finite coordinates")
+    if core.available():
+        return float(core.core().nearest_other_distances(np.ascontiguousarray(pts)).mean())
     # one thread: scipy's threaded query (workers=-1) joins its threads in Python, where a Ctrl-C raises
     # KeyboardInterrupt while they still write into the result: a segfault (5 of 6 Ctrl-C's during a run);
     # 43 ms instead of 34 on a 38k-point scan

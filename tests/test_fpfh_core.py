@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fastmac_exp import core
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor, fpfh_features, match_features
@@ -296,3 +297,32 @@ def test_bad_impl_and_voxel_say_what():
         fpfh_features(scan(0)[:50], 10.0, impl="core", what="pair 'x': source cloud")
     with pytest.raises(InputError, match="2\\^21 voxels"):
         fpfh_features(np.array([[0.0, 0, 0], [1e9, 0, 0]] * 10), 1e-3, impl="core")
+
+
+# -- mesh resolution ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("case", ["scan", "duplicates", "outliers", "line", "two"])
+def test_nearest_other_distances_equal_a_kd_tree(case):
+    rng = np.random.default_rng(8)
+    pts = {
+        "scan": scan(9, 20000),
+        # repeated points contribute 0; a lattice has many equal distances
+        "duplicates": np.vstack([scan(10, 4000), scan(10, 4000)[:500]]),
+        # far outliers force the ring search outwards and, past 64 rings, the fallback over every point
+        "outliers": np.vstack([scan(11, 5000), rng.uniform(-1e4, 1e4, (5, 3)), [[3e5, 0, 0]]]),
+        "line": np.c_[np.arange(1000) * 0.01, np.zeros(1000), np.zeros(1000)],
+        "two": np.array([[0.0, 0, 0], [0.3, 0.4, 0]]),
+    }[case]
+    ref = cKDTree(pts).query(pts, k=2)[0][:, 1]
+    for threads in (1, 2):
+        np.testing.assert_array_equal(core.core().nearest_other_distances(pts, num_threads=threads), ref)
+
+
+def test_mesh_resolution_rejects_bad_clouds():
+    from fastmac_exp.resolution import mesh_resolution
+
+    with pytest.raises(InputError, match="N >= 2"):
+        mesh_resolution(np.zeros((1, 3)))
+    with pytest.raises(InputError, match="non-finite"):
+        mesh_resolution(np.array([[0.0, 0, 0], [np.nan, 0, 0], [1, 1, 1]]))

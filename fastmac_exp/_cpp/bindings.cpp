@@ -479,6 +479,16 @@ nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t 
     return nb::make_tuple(to_numpy(std::move(normals), {(size_t)n, 3}), to_numpy(std::move(feat), {m, 33}));
 }
 
+nb::object nearest_other_distances(const Points &points, int num_threads) {
+    if (points.shape(1) != 3) throw std::invalid_argument("nearest_other_distances: points must be (N, 3)");
+    std::vector<double> d;
+    {
+        nb::gil_scoped_release nogil;
+        d = fastmac::nearest_other_distances(points.data(), (int64_t)points.shape(0), num_threads);
+    }
+    return to_numpy(std::move(d));
+}
+
 nb::object nearest_rows_fast(const Points &a, const Points &b, int num_threads) {
     if (a.shape(1) != b.shape(1))
         throw std::invalid_argument("a and b must have the same number of columns, got " +
@@ -659,6 +669,8 @@ NB_MODULE(_mac_core, m) {
           "feature_max_nn"_a, "viewpoint"_a = nb::none(), "rows"_a = nb::none(), "num_threads"_a = 0,
           "normals"_a = nb::none(),
           "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions; given normals are used as they are");
+    m.def("nearest_other_distances", &nearest_other_distances, "points"_a, "num_threads"_a = 0,
+          "Each point's distance to its nearest other point (exact, from a grid; MAC's mesh resolution is the mean)");
     m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
           "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
           "to float32 accuracy, rows settled in float64)");

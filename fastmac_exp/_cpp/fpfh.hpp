@@ -52,4 +52,7 @@ struct Matches {
 };
 Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t nb, int64_t dim, int nthreads);
 
+// Each point's distance to its nearest other point (resolution.cpp; 0 for a repeated point).
+std::vector<double> nearest_other_distances(const double *points, int64_t n, int nthreads);
+
 }  // namespace fastmac
