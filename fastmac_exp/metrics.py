@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # pandas is imported where a table is summarised: `import fastmac_exp` stays light
+    import pandas as pd
 
 from fastmac_exp.transforms import nearest_rigid, rotation_error_deg, translation_error_m
 
@@ -36,6 +39,8 @@ TURBOREG_STAGES = ("pivots", "hypotheses")  # backend=turboreg's stages besides 
 def summarize(table: pd.DataFrame) -> dict:
     """RR over the pairs with GT (failed pairs count as not registered; a pair without GT is not scored),
     RE/TE means over successful pairs, median time per stage (ms)."""
+    import pandas as pd
+
     n = len(table)
     if n == 0:
         return {"pairs": 0, "failed": 0, "RR": float("nan")}

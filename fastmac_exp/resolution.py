@@ -16,7 +16,6 @@ import functools
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES, FIXED_RESOLUTION
@@ -41,6 +40,8 @@ def mesh_resolution(points: np.ndarray) -> float:
     # one thread: scipy's threaded query (workers=-1) joins its threads in Python, where a Ctrl-C raises
     # KeyboardInterrupt while they still write into the result: a segfault (5 of 6 Ctrl-C's during a run);
     # 43 ms instead of 34 on a 38k-point scan
+    from scipy.spatial import cKDTree
+
     d, _ = cKDTree(pts).query(pts, k=2, workers=1)
     return float(d[:, 1].mean())
 

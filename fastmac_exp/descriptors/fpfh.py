@@ -15,7 +15,6 @@ neighbours has equal normal angles to rounding and Open3D's own compiled arithme
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_features, correspondences_from_kept_sources
@@ -183,6 +182,8 @@ def nearest_rows_and_runner_up(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray
     if core.available():
         idx, second, _ = core.core().nearest_rows_fast(a, b)
         return idx, second
+    from scipy.spatial import cKDTree
+
     k = min(2, len(b))
     d, i = cKDTree(b).query(a, k=k)
     if k == 1:

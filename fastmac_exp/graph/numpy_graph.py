@@ -6,8 +6,12 @@ stored sparse (only where W passes its threshold), so memory grows with the edge
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.sparse as sp
+
+if TYPE_CHECKING:  # imported where a graph is built: `import fastmac_exp` stays light
+    import scipy.sparse as sp
 
 from fastmac_exp.params import GAUSSIAN, GraphParams
 from fastmac_exp.types import GraphSignals
@@ -43,6 +47,8 @@ def first_order(src: np.ndarray, tgt: np.ndarray, gp: GraphParams, block: int = 
     i = np.concatenate(rows) if rows else np.zeros(0, np.int64)
     j = np.concatenate(cols) if cols else np.zeros(0, np.int64)
     w = np.concatenate(vals) if vals else np.zeros(0)
+    import scipy.sparse as sp
+
     upper = sp.coo_matrix((w, (i, j)), shape=(n, n))
     return (upper + upper.T).tocsr()
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.linalg
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.graph import first_order
@@ -35,6 +34,8 @@ def graph_shift_eigenvectors(w_sog: np.ndarray) -> np.ndarray:
     deg = w_sog.sum(axis=1)
     inv = np.where(deg > 0, 1.0 / np.sqrt(np.where(deg > 0, deg, 1.0)), 0.0)
     shift = inv[:, None] * w_sog * inv[None, :]
+    import scipy.linalg  # here, not at import: `import fastmac_exp` stays light
+
     vals, vecs = scipy.linalg.eigh(shift)
     return vecs[:, np.argsort(-vals, kind="stable")]
 
