@@ -46,6 +46,31 @@ inline double hit_d2(Hit h) {
 }
 inline int32_t hit_idx(Hit h) { return int32_t(uint32_t(h)); }
 
+// Sorts a query's hits (squared distances in [0, r2)) nearest first: a counting sort into 128 slices of
+// [0, r2), then insertion sort, which has little left to do (a few tens of hits spread over the slices).
+void sort_hits(std::vector<Hit> &hits, double r2, std::vector<int32_t> &bucket, std::vector<Hit> &spare) {
+    constexpr int kSlices = 128;
+    const int64_t n = int64_t(hits.size());
+    if (n < 24) {
+        std::sort(hits.begin(), hits.end());
+        return;
+    }
+    bucket.assign(kSlices + 1, 0);
+    const double scale = kSlices / r2;
+    auto slice = [&](Hit h) { return std::min(kSlices - 1, int(hit_d2(h) * scale)); };
+    for (const Hit h : hits) ++bucket[slice(h) + 1];
+    for (int b = 0; b < kSlices; ++b) bucket[b + 1] += bucket[b];
+    spare.resize(n);
+    for (const Hit h : hits) spare[bucket[slice(h)]++] = h;
+    for (int64_t k = 1; k < n; ++k) {
+        const Hit h = spare[k];
+        int64_t j = k;
+        while (j > 0 && spare[j - 1] > h) spare[j] = spare[j - 1], --j;
+        spare[j] = h;
+    }
+    hits.swap(spare);
+}
+
 // --- the closed-form eigenvector of the smallest eigenvalue (Open3D's FastEigen3x3) ---------------------
 
 struct V3 {
@@ -438,7 +463,8 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         // loop vectorises), then each query's hits sorted nearest first
         std::vector<double> qx, qy, qz, dd;
         std::vector<int32_t> qi;
-        std::vector<Hit> hits;
+        std::vector<Hit> hits, spare;
+        std::vector<int32_t> bucket;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
@@ -474,11 +500,7 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
                     for (int64_t t = 0; t < nc; ++t)
                         if (dd[t] < r2) hits.push_back(make_hit(dd[t], qi[t]));
                     const int64_t keep = std::min<int64_t>(int64_t(hits.size()), cap);
-                    if (keep < int64_t(hits.size())) {
-                        std::nth_element(hits.begin(), hits.begin() + keep, hits.end());
-                        hits.resize(keep);
-                    }
-                    std::sort(hits.begin(), hits.end());
+                    sort_hits(hits, r2, bucket, spare);
                     const int64_t i = order[s];
                     count[i] = int32_t(keep);
                     for (int64_t k = 0; k < keep; ++k) {
