@@ -326,3 +326,8 @@ def test_mesh_resolution_rejects_bad_clouds():
         mesh_resolution(np.zeros((1, 3)))
     with pytest.raises(InputError, match="non-finite"):
         mesh_resolution(np.array([[0.0, 0, 0], [np.nan, 0, 0], [1, 1, 1]]))
+
+
+def test_nearest_other_distances_rejects_non_finite_points():
+    with pytest.raises(ValueError, match="not finite"):
+        core.core().nearest_other_distances(np.array([[0.0, 0, 0], [np.nan, 0, 0], [1, 1, 1]]))

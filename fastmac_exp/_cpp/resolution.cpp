@@ -7,6 +7,7 @@
 // final, and otherwise the search widens ring by ring until the next ring cannot hold anything closer.
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <vector>
@@ -75,6 +76,27 @@ void visit_run(const Grid &g, int64_t x, int64_t y, int64_t z0, int64_t z1, F &&
     }
 }
 
+// The smallest squared distance from (x, y, z) to the candidates other than position `self`: the distances
+// into `dd`, then their minimum as integers (the bits of non-negative doubles order as the values), so that
+// both loops vectorise without fast-math.
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
+__attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
+double min_other_d2(double x, double y, double z, const double *__restrict qx, const double *__restrict qy,
+                    const double *__restrict qz, int64_t m, int64_t self, double *__restrict dd) {
+    for (int64_t t = 0; t < m; ++t) {
+        const double ex = x - qx[t], ey = y - qy[t], ez = z - qz[t];
+        dd[t] = ex * ex + ey * ey + ez * ez;
+    }
+    if (self < m) dd[self] = std::numeric_limits<double>::infinity();
+    const int64_t *bits = reinterpret_cast<const int64_t *>(dd);
+    int64_t best = std::numeric_limits<int64_t>::max();
+    for (int64_t t = 0; t < m; ++t) best = std::min(best, bits[t]);
+    double out;
+    std::memcpy(&out, &best, 8);
+    return best == std::numeric_limits<int64_t>::max() ? std::numeric_limits<double>::infinity() : out;
+}
+
 }  // namespace
 
 std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthreads) {
@@ -84,6 +106,8 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
     for (int d = 0; d < 3; ++d) hi[d] = -std::numeric_limits<double>::infinity();
     for (int64_t i = 0; i < n; ++i)
         for (int d = 0; d < 3; ++d) hi[d] = std::max(hi[d], p[3 * i + d]);
+    for (int64_t i = 0; i < 3 * n; ++i)
+        if (!std::isfinite(p[i])) throw std::invalid_argument("nearest_other_distances: a coordinate is not finite");
     double ext = 0.0;
     for (int d = 0; d < 3; ++d) {
         if (!std::isfinite(lo[d]) || !std::isfinite(hi[d]))
@@ -116,7 +140,7 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
     nthreads = resolve_threads(nthreads, n);
     DynamicRange range(0, ncell, 64);
     parallel_region(nthreads, [&](int) {
-        std::vector<double> qx, qy, qz;
+        std::vector<double> qx, qy, qz, dd;
         std::vector<int64_t> qs;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
@@ -133,14 +157,12 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
                             qs.push_back(s);
                         });
                 const int64_t m = int64_t(qx.size());
+                dd.resize(m);
                 for (int64_t s = first; s < last; ++s) {
                     const double x = g.sorted[3 * s], y = g.sorted[3 * s + 1], z = g.sorted[3 * s + 2];
-                    double best = std::numeric_limits<double>::infinity();
-                    for (int64_t t = 0; t < m; ++t) {
-                        const double ex = x - qx[t], ey = y - qy[t], ez = z - qz[t];
-                        const double d2 = ex * ex + ey * ey + ez * ez;
-                        if (qs[t] != s && d2 < best) best = d2;
-                    }
+                    // the query itself sits at one position of the candidates: the minimum of both sides
+                    const int64_t self = int64_t(std::find(qs.begin(), qs.end(), s) - qs.begin());
+                    double best = min_other_d2(x, y, z, qx.data(), qy.data(), qz.data(), m, self, dd.data());
                     // rings 2, 3, ... while a point there could be closer (ring r is >= (r - 1) h away, less a
                     // hair for a point that rounding put in the next cell)
                     const double hh = g.h * (1.0 - 1e-9);
