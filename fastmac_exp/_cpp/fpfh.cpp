@@ -46,13 +46,16 @@ inline double hit_d2(Hit h) {
 }
 inline int32_t hit_idx(Hit h) { return int32_t(uint32_t(h)); }
 
-// Sorts a query's hits (squared distances in [0, r2)) nearest first: a counting sort into 128 slices of
-// [0, r2), then insertion sort, which has little left to do (a few tens of hits spread over the slices).
-void sort_hits(std::vector<Hit> &hits, double r2, std::vector<int32_t> &bucket, std::vector<Hit> &spare) {
+// The `cap` nearest of a query's hits (squared distances in [0, r2)), nearest first, into the front of
+// `hits` (resized to them): a counting sort into 128 slices of [0, r2), the slices past the cap-th hit
+// dropped, then an insertion sort, which has little left to do (a few hits a slice).
+void nearest_hits(std::vector<Hit> &hits, int64_t cap, double r2, std::vector<int32_t> &bucket,
+                  std::vector<Hit> &spare) {
     constexpr int kSlices = 128;
     const int64_t n = int64_t(hits.size());
     if (n < 24) {
         std::sort(hits.begin(), hits.end());
+        if (n > cap) hits.resize(cap);
         return;
     }
     bucket.assign(kSlices + 1, 0);
@@ -60,14 +63,22 @@ void sort_hits(std::vector<Hit> &hits, double r2, std::vector<int32_t> &bucket, 
     auto slice = [&](Hit h) { return std::min(kSlices - 1, int(hit_d2(h) * scale)); };
     for (const Hit h : hits) ++bucket[slice(h) + 1];
     for (int b = 0; b < kSlices; ++b) bucket[b + 1] += bucket[b];
+    // the hits of the slices up to the one holding the cap-th nearest
+    int last = 0;
+    while (last < kSlices - 1 && bucket[last + 1] < cap) ++last;
+    const int64_t m = bucket[last + 1];
     spare.resize(n);
-    for (const Hit h : hits) spare[bucket[slice(h)]++] = h;
-    for (int64_t k = 1; k < n; ++k) {
+    for (const Hit h : hits) {
+        const int b = slice(h);
+        if (b <= last) spare[bucket[b]++] = h;
+    }
+    for (int64_t k = 1; k < m; ++k) {
         const Hit h = spare[k];
         int64_t j = k;
         while (j > 0 && spare[j - 1] > h) spare[j] = spare[j - 1], --j;
         spare[j] = h;
     }
+    spare.resize(std::min(m, cap));
     hits.swap(spare);
 }
 
@@ -496,11 +507,15 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
                         const double ex = px - qx[t], ey = py - qy[t], ez = pz - qz[t];
                         dd[t] = ex * ex + ey * ey + ez * ez;
                     }
-                    hits.clear();
-                    for (int64_t t = 0; t < nc; ++t)
-                        if (dd[t] < r2) hits.push_back(make_hit(dd[t], qi[t]));
-                    const int64_t keep = std::min<int64_t>(int64_t(hits.size()), cap);
-                    sort_hits(hits, r2, bucket, spare);
+                    hits.resize(nc);
+                    int64_t nh = 0;
+                    for (int64_t t = 0; t < nc; ++t) {  // branch-free compaction
+                        hits[nh] = make_hit(dd[t], qi[t]);
+                        nh += dd[t] < r2;
+                    }
+                    hits.resize(nh);
+                    nearest_hits(hits, cap, r2, bucket, spare);
+                    const int64_t keep = int64_t(hits.size());
                     const int64_t i = order[s];
                     count[i] = int32_t(keep);
                     for (int64_t k = 0; k < keep; ++k) {
