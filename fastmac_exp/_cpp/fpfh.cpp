@@ -475,7 +475,7 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         std::vector<double> qx, qy, qz, dd;
         std::vector<int32_t> qi;
         std::vector<Hit> hits, spare;
-        std::vector<int32_t> bucket;
+        std::vector<int32_t> bucket, within;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
@@ -507,13 +507,14 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
                         const double ex = px - qx[t], ey = py - qy[t], ez = pz - qz[t];
                         dd[t] = ex * ex + ey * ey + ez * ez;
                     }
-                    hits.resize(nc);
+                    within.resize(nc);
                     int64_t nh = 0;
-                    for (int64_t t = 0; t < nc; ++t) {  // branch-free compaction
-                        hits[nh] = make_hit(dd[t], qi[t]);
+                    for (int64_t t = 0; t < nc; ++t) {  // branch-free compaction of the positions
+                        within[nh] = int32_t(t);
                         nh += dd[t] < r2;
                     }
                     hits.resize(nh);
+                    for (int64_t k = 0; k < nh; ++k) hits[k] = make_hit(dd[within[k]], qi[within[k]]);
                     nearest_hits(hits, cap, r2, bucket, spare);
                     const int64_t keep = int64_t(hits.size());
                     const int64_t i = order[s];
