@@ -17,59 +17,17 @@ from __future__ import annotations
 import numpy as np
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
+from fastmac_exp.descriptors.keypoints import keypoints, resolve_impl
 from fastmac_exp.descriptors.matching import correspondences_from_features, correspondences_from_kept_sources
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
-MIN_POINTS = 10
-IMPLS = ("auto", "core", "open3d")
-
-
-def resolve_impl(impl: str) -> str:
-    """ "core" or "open3d" for a configured `impl` ("auto": the core where the extension is built)."""
-    from fastmac_exp import core
-
-    if impl not in IMPLS:
-        raise InputError(f"fpfh impl must be one of {IMPLS}, got {impl!r}")
-    if impl == "auto":
-        return "core" if core.available() else "open3d"
-    if impl == "core":
-        core.core()  # BackendUnavailable with the build instructions when it is missing
-    return impl
-
-
-def clean_points(points: np.ndarray, what: str) -> np.ndarray:
-    """The cloud as (N, 3) float64 with non-finite rows dropped."""
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
-    return np.ascontiguousarray(pts[np.isfinite(pts).all(axis=1)])
-
 
 def voxel_keypoints(points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "auto") -> np.ndarray:
-    """The voxel centroids of a cloud (Open3D's voxel_down_sample; the core's are the same points ordered by
-    voxel). Raises InputError when fewer than MIN_POINTS survive."""
+    """FPFH's keypoints: the voxel centroids of the cloud (descriptors/keypoints.py)."""
     if voxel is None or not voxel > 0:
         raise InputError(f"FPFH voxel size must be positive, got {voxel}")
-    pts = clean_points(points, what)
-    if resolve_impl(impl) == "core":
-        from fastmac_exp import core
-
-        try:
-            kp = core.core().voxel_downsample(pts, float(voxel))
-        except ValueError as exc:
-            raise InputError(f"{what}: {exc}") from None
-    else:
-        from fastmac_exp._open3d import o3d
-
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        kp = np.asarray(pcd.voxel_down_sample(float(voxel)).points, dtype=np.float64)
-    if len(kp) < MIN_POINTS:
-        raise InputError(
-            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-            f"FPFH needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
-        )
-    return kp
+    return keypoints(points, voxel, what, impl)[1]
 
 
 def core_fpfh(

@@ -9,9 +9,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.descriptors.keypoints import MIN_POINTS, clean_points, keypoints, voxel_down  # noqa: F401
 from fastmac_exp.errors import InputError
-
-MIN_POINTS = 10
 
 
 @dataclass(frozen=True)
@@ -56,21 +55,6 @@ class PatchParams:
         if self.k2:
             out.append((self.k2, self.radius_factor2, self.support_factor2))
         return out
-
-
-def voxel_down(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Open3D voxel downsampling (centroid per voxel), the FPFH front end's keypoints."""
-    from fastmac_exp._open3d import o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64)))
-    return np.asarray(pcd.voxel_down_sample(float(voxel)).points, dtype=np.float64)
-
-
-def clean_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
-    return pts[np.isfinite(pts).all(axis=1)]
 
 
 def local_frames(local: np.ndarray, valid: np.ndarray, radius: float) -> np.ndarray:
@@ -175,20 +159,6 @@ def extract_patches(
 def support_clouds(points: np.ndarray, keypoints: np.ndarray, voxel: float, params: PatchParams) -> list:
     """The support cloud of each scale (the keypoints themselves where the support factor is 1)."""
     return [keypoints if sf == 1.0 else voxel_down(points, sf * voxel) for _, _, sf in params.scales()]
-
-
-def keypoints(points: np.ndarray, voxel: float, what: str = "cloud") -> tuple[np.ndarray, np.ndarray]:
-    """(the cleaned cloud, its keypoints): the cloud voxel-downsampled at `voxel`, at least MIN_POINTS."""
-    if voxel is None or not voxel > 0:
-        raise InputError(f"descriptor voxel size must be positive, got {voxel}")
-    pts = clean_points(points, what)
-    kp = voxel_down(pts, voxel)
-    if len(kp) < MIN_POINTS:
-        raise InputError(
-            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-            f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
-        )
-    return pts, kp
 
 
 def cloud_patches(

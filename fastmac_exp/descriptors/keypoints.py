@@ -1,0 +1,72 @@
+"""What every feature front end starts from: the cloud without non-finite rows, and its voxel keypoints.
+
+Two implementations of the voxel grid (`impl`): Open3D's `voxel_down_sample` (the reference) and the C++
+core's (fastmac_exp/_cpp/fpfh.cpp), which gives the same centroids to the last bit, ordered by voxel
+instead of Open3D's hash-map order. "auto" takes the core where it is built. FPFH uses "auto"; the learned
+front ends keep Open3D's order, which their recorded results were made with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fastmac_exp.errors import InputError
+
+MIN_POINTS = 10
+IMPLS = ("auto", "core", "open3d")
+
+
+def resolve_impl(impl: str) -> str:
+    """ "core" or "open3d" for a configured `impl` ("auto": the core where the extension is built)."""
+    from fastmac_exp import core
+
+    if impl not in IMPLS:
+        raise InputError(f"impl must be one of {IMPLS}, got {impl!r}")
+    if impl == "auto":
+        return "core" if core.available() else "open3d"
+    if impl == "core":
+        core.core()  # BackendUnavailable with the build instructions when it is missing
+    return impl
+
+
+def clean_points(points: np.ndarray, what: str = "cloud") -> np.ndarray:
+    """The cloud as (N, 3) float64 with non-finite rows dropped."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
+    return np.ascontiguousarray(pts[np.isfinite(pts).all(axis=1)])
+
+
+def voxel_down(points: np.ndarray, voxel: float, impl: str = "open3d") -> np.ndarray:
+    """Voxel centroids of a finite cloud (`impl` as above)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    if resolve_impl(impl) == "core":
+        from fastmac_exp import core
+
+        try:
+            return core.core().voxel_downsample(pts, float(voxel))
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    from fastmac_exp._open3d import o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    return np.asarray(pcd.voxel_down_sample(float(voxel)).points, dtype=np.float64)
+
+
+def keypoints(
+    points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "open3d"
+) -> tuple[np.ndarray, np.ndarray]:
+    """(the cleaned cloud, its voxel keypoints at `voxel`); InputError below MIN_POINTS keypoints."""
+    if voxel is None or not voxel > 0:
+        raise InputError(f"descriptor voxel size must be positive, got {voxel}")
+    pts = clean_points(points, what)
+    try:
+        kp = voxel_down(pts, voxel, impl)
+    except InputError as exc:
+        raise InputError(f"{what}: {exc}") from None
+    if len(kp) < MIN_POINTS:
+        raise InputError(
+            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
+            f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
+        )
+    return pts, kp
