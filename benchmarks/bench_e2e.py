@@ -174,9 +174,10 @@ def run_pair(pair: Pair, methods: list[str], reps: int) -> dict[str, dict]:
         for m in methods:
             try:
                 pose, ms = calls[m]()
-            except FastMacError as exc:
+            except (FastMacError, RuntimeError) as exc:  # a peer may refuse a pair (KISS-Matcher: voxel)
                 pose, ms = np.full((4, 4), np.nan), {"total": float("nan")}
-                print(f"  {pair.name} {m}: {exc}")
+                if r:
+                    print(f"  {pair.name}: {LABELS[m]} failed: {exc}")
             if r:
                 runs[m].append(ms)
                 poses[m] = pose
@@ -288,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
         print("\nKISS-Matcher / project (core FPFH), end to end:")
         for name, r in results.items():
             p, k = r["project"]["ms"]["total"], r["kiss_matcher"]["ms"]["total"]
+            if not np.isfinite(k):
+                print(f"  {name:34s}   -     (KISS-Matcher gave no pose)")
+                continue
             print(
                 f"  {name:34s} {k / p:5.2f}x   (registered: project {r['project']['success']}, "
                 f"KISS-Matcher {r['kiss_matcher']['success']})"
