@@ -1,7 +1,8 @@
 """Raw clouds to a pose, side by side in one run, on every real pair of ../shared/data (issue 40).
 
     python benchmarks/bench_e2e.py [--reps 3] [--ids ID ...] [--no-kiss] [--no-ransac] [--no-open3d]
-                                   [--no-startup] [--no-inliers] [--threads 0] [--json out.json]
+                                   [--no-startup] [--no-inliers] [--learned buffer fcgf_lite spinnet]
+                                   [--threads 0] [--json out.json]
 
 Methods, each from the two raw clouds (as loaded: no voxel grid applied before the clock starts):
 - project (core FPFH): what `fastmac_exp.register` and `run.py` do with the default front end: MAC's
@@ -11,6 +12,8 @@ Methods, each from the two raw clouds (as loaded: no voxel grid applied before t
 - project (Open3D FPFH): the same with descriptor.impl=open3d (Open3D's FPFH for every keypoint).
 - KISS-Matcher: its whole pipeline, KISSMatcher(KISSMatcherConfig(voxel)).estimate(src, tgt) (its own
   voxel grid, features, matching and solver); the clouds' conversion to its input lists is not timed.
+- project (buffer / fcgf_lite / spinnet), with --learned: the project with a learned front end
+  (its config's defaults) in place of FPFH.
 - Open3D FPFH + RANSAC: Open3D's voxel grid, normals and FPFH (the project's parameters), then
   registration_ransac_based_on_feature_matching with 100,000 iterations (confidence 0.999).
 
@@ -83,7 +86,17 @@ def load() -> str:
 # the methods: each returns (pose, {stage: ms})
 
 
-def project_once(pair: Pair, impl: str, seed: int = 0) -> tuple[np.ndarray, dict[str, float]]:
+def learned_descriptor(name: str):
+    """A learned front end by its config name, with the config's defaults (conf/descriptor/NAME.yaml)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    return instantiate(OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml"))
+
+
+def project_once(
+    pair: Pair, impl: str, seed: int = 0, descriptor=None
+) -> tuple[np.ndarray, dict[str, float]]:
     from fastmac_exp.backends.cpp import CppBackend
     from fastmac_exp.samplers import make_sampler
 
@@ -93,12 +106,12 @@ def project_once(pair: Pair, impl: str, seed: int = 0) -> tuple[np.ndarray, dict
     if pair.meta.get("category") != "object" and pair.family in COMPUTED_FAMILIES:  # computed, as at load
         resolution = resolution_for(pair.family, pair.src_cloud, pair.tgt_cloud)
     t1 = time.perf_counter()
-    desc = FPFHDescriptor(impl=impl)
+    desc = FPFHDescriptor(impl=impl) if descriptor is None else descriptor
     corr = describe_moved(desc, pair, rng)
     t2 = time.perf_counter()
     overrides = {"inlier_threshold": pair.inlier_threshold}
-    params = mac_params_for(pair.family, "fpfh", resolution, mac_overrides=overrides)
-    sample_graph = mac_params_for(pair.family, "fpfh", pair.sampler_resolution).graph
+    params = mac_params_for(pair.family, desc.graph_key, resolution, mac_overrides=overrides)
+    sample_graph = mac_params_for(pair.family, desc.graph_key, pair.sampler_resolution).graph
     sampler, backend = make_sampler("highpass"), CppBackend()
     result, _ = register_correspondences(
         corr, params, sampler, backend, RATIO, pair.family, rng, sample_graph=sample_graph
@@ -155,7 +168,7 @@ def ransac_once(pair: Pair, seed: int = 0) -> tuple[np.ndarray, dict[str, float]
 # ---------------------------------------------------------------------------------------------------
 
 
-def run_pair(pair: Pair, methods: list[str], reps: int) -> dict[str, dict]:
+def run_pair(pair: Pair, methods: list[str], reps: int, learned: dict | None = None) -> dict[str, dict]:
     kiss_inputs = None
     if "kiss_matcher" in methods:
         kiss_inputs = (
@@ -168,6 +181,8 @@ def run_pair(pair: Pair, methods: list[str], reps: int) -> dict[str, dict]:
         "kiss_matcher": lambda: kiss_once(pair, kiss_inputs),
         "open3d_ransac": lambda: ransac_once(pair),
     }
+    for name, desc in (learned or {}).items():
+        calls[name] = lambda desc=desc: project_once(pair, "core", descriptor=desc)
     runs: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     poses: dict[str, np.ndarray] = {}
     for r in range(reps + 1):  # round 0 warms up
@@ -240,6 +255,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-open3d", action="store_true", help="skip the project with Open3D's FPFH")
     ap.add_argument("--no-startup", action="store_true")
     ap.add_argument("--no-inliers", action="store_true")
+    ap.add_argument(
+        "--learned",
+        nargs="*",
+        default=[],
+        metavar="NAME",
+        help="also the project with these learned front ends (buffer, fcgf_lite, spinnet)",
+    )
     ap.add_argument("--threads", type=int, default=0, help="the core's threads (OMP_NUM_THREADS; 0: all)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -262,6 +284,10 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             print("kiss-matcher is not installed (pip install kiss-matcher): its column is skipped")
             methods.remove("kiss_matcher")
+    learned = {f"project_{name}": learned_descriptor(name) for name in args.learned}
+    for key in learned:
+        LABELS[key] = f"project ({key[8:]})"
+    methods += list(learned)
     ds = SharedRealPairs(root=DATA, ids=args.ids)
     print(f"bench_e2e: {cpu_model()}, {os.cpu_count()} cores, core threads {core.core().default_threads()}, "
           f"load {load()}, reps {args.reps} (+1 warm-up), FastMAC@{RATIO:g}")  # fmt: skip
@@ -274,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         pair = ds.load(i)
         if kitti is None and pair.name.startswith("kitti"):
             kitti = pair
-        res = run_pair(pair, methods, args.reps)
+        res = run_pair(pair, methods, args.reps, learned)
         points = [len(pair.src_cloud), len(pair.tgt_cloud)]
         results[pair.name] = {"points": points, "family": pair.family, **res}
         for m in methods:
