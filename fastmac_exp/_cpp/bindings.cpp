@@ -463,17 +463,9 @@ nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t 
     }
     {
         nb::gil_scoped_release nogil;
-        // one search serves both when the normals' neighbourhood is a prefix of the feature's
-        const fastmac::Neighbours fn =
-            fastmac::radius_neighbours(keypoints.data(), n, feature_radius, feature_max_nn, num_threads);
-        const fastmac::Neighbours nn =
-            normal_radius <= feature_radius && normal_max_nn <= feature_max_nn
-                ? fastmac::nearest_prefix(fn, normal_radius, normal_max_nn)
-                : fastmac::radius_neighbours(keypoints.data(), n, normal_radius, normal_max_nn, num_threads);
-        if (normals.empty())
-            normals = fastmac::pca_normals(keypoints.data(), n, nn, has_vp ? vp : nullptr, num_threads);
-        feat = fastmac::fpfh_features(keypoints.data(), normals.data(), n, fn, has_rows ? sel.data() : nullptr,
-                                      has_rows ? (int64_t)sel.size() : n, num_threads);
+        feat = fastmac::describe_fpfh(keypoints.data(), n, normal_radius, normal_max_nn, feature_radius,
+                                      feature_max_nn, has_vp ? vp : nullptr, has_rows ? sel.data() : nullptr,
+                                      (int64_t)sel.size(), normals, num_threads);
     }
     const size_t m = feat.size() / 33;
     return nb::make_tuple(to_numpy(std::move(normals), {(size_t)n, 3}), to_numpy(std::move(feat), {m, 33}));

@@ -404,7 +404,7 @@ std::vector<double> voxel_downsample(const double *points, int64_t n, double vox
                 c[d] = int64_t(f);
             }
         }
-        keyed[i] = {pack(c[0], c[1], c[2]), i};
+        keyed[i] = {grid::scramble(pack(c[0], c[1], c[2])), i};
     });
     if (too_wide)
         throw std::invalid_argument("voxel_downsample: the cloud spans more than 2^21 voxels along an axis");
@@ -643,6 +643,62 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
         }
     });
     return out;
+}
+
+std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double normal_radius, int64_t normal_max_nn,
+                                  double feature_radius, int64_t feature_max_nn, const double *viewpoint,
+                                  const int64_t *rows, int64_t nrows, std::vector<double> &normals, int nthreads) {
+    if (!(feature_radius > 0)) throw std::invalid_argument("describe_fpfh: the feature radius must be positive");
+    for (int64_t r = 0; rows && r < nrows; ++r)
+        if (rows[r] < 0 || rows[r] >= n) throw std::invalid_argument("describe_fpfh: a row is out of range");
+    // the keypoints in grid order (cells of the feature radius, index order within a cell)
+    double lo[3];
+    cloud_min(keypoints, n, lo);
+    std::vector<std::pair<uint64_t, int64_t>> keyed(n);
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t c[3];
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor((keypoints[3 * i + d] - lo[d]) / feature_radius);
+            c[d] = f < double(kAxisMax) ? int64_t(f) : kAxisMax;
+        }
+        keyed[i] = {pack(c[0], c[1], c[2]), i};
+    }
+    sort_keyed(keyed);
+    std::vector<int64_t> pos(n);  // caller's index -> grid position
+    std::vector<double> kp(3 * n), nin;
+    const bool given = !normals.empty();
+    if (given) nin.resize(3 * n);
+    for (int64_t k = 0; k < n; ++k) {
+        const int64_t i = keyed[k].second;
+        pos[i] = k;
+        for (int d = 0; d < 3; ++d) {
+            kp[3 * k + d] = keypoints[3 * i + d];
+            if (given) nin[3 * k + d] = normals[3 * i + d];
+        }
+    }
+    std::vector<int64_t> sel;
+    if (rows) {
+        sel.resize(nrows);
+        for (int64_t r = 0; r < nrows; ++r) sel[r] = pos[rows[r]];
+    }
+    const Neighbours fn = radius_neighbours(kp.data(), n, feature_radius, feature_max_nn, nthreads);
+    if (!given) {
+        const Neighbours nn = normal_radius <= feature_radius && normal_max_nn <= feature_max_nn
+                                  ? nearest_prefix(fn, normal_radius, normal_max_nn)
+                                  : radius_neighbours(kp.data(), n, normal_radius, normal_max_nn, nthreads);
+        nin = pca_normals(kp.data(), n, nn, viewpoint, nthreads);
+    }
+    std::vector<double> feat =
+        fpfh_features(kp.data(), nin.data(), n, fn, rows ? sel.data() : nullptr, rows ? nrows : n, nthreads);
+    normals.resize(3 * n);
+    for (int64_t i = 0; i < n; ++i)
+        for (int d = 0; d < 3; ++d) normals[3 * i + d] = nin[3 * pos[i] + d];
+    if (!rows) {  // every row, back in the caller's order
+        std::vector<double> out(feat.size());
+        for (int64_t i = 0; i < n; ++i) std::copy_n(&feat[size_t(pos[i]) * 33], 33, &out[size_t(i) * 33]);
+        return out;
+    }
+    return feat;
 }
 
 }  // namespace fastmac

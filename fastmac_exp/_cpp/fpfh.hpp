@@ -10,8 +10,9 @@
 namespace fastmac {
 
 // Open3D's voxel_down_sample: the centroid of the points of every occupied voxel of the grid anchored at
-// min(points) - voxel / 2 (sums in input order, as Open3D). Keypoints are ordered by their voxel (x, then y,
-// then z index), not in Open3D's hash-map order. Throws std::invalid_argument when the cloud spans more
+// min(points) - voxel / 2 (sums in input order, as Open3D). Keypoints are ordered by a scrambled voxel key
+// (grid::scramble): deterministic, and like Open3D's hash-map order without spatial runs, so that no prefix
+// or tie-break downstream sees one corner of the scene first. Throws std::invalid_argument when the cloud spans more
 // than 2^21 voxels along an axis.
 std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads);
 
@@ -39,6 +40,14 @@ std::vector<double> pca_normals(const double *points, int64_t n, const Neighbour
 // computed for every point that a described row reaches.
 std::vector<double> fpfh_features(const double *points, const double *normals, int64_t n, const Neighbours &nb,
                                   const int64_t *rows, int64_t nrows, int nthreads);
+
+// The whole front end of one keypoint cloud: the neighbourhoods (one search when the normals' is a prefix of
+// the feature's), normals (unless `normals` comes filled, n x 3; filled on return) and the FPFH of `rows`
+// (all when null), rows x 33. Works on the keypoints in the order of a grid of the feature radius, so that
+// neighbours are near in memory whatever the keypoints' order; the results are in the caller's order.
+std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double normal_radius, int64_t normal_max_nn,
+                                  double feature_radius, int64_t feature_max_nn, const double *viewpoint,
+                                  const int64_t *rows, int64_t nrows, std::vector<double> &normals, int nthreads);
 
 // Exact nearest rows in feature space, fast (feature_match.cpp): for every row of a (na x dim) the index of
 // the nearest row of b (nb x dim), equal to nearest_rows' (the same float64 arithmetic decides, ties to the

@@ -18,6 +18,17 @@ inline uint64_t pack(int64_t x, int64_t y, int64_t z) {
     return (uint64_t(x) << (2 * kAxisBits)) | (uint64_t(y) << kAxisBits) | uint64_t(z);
 }
 
+// A bijection of 64-bit keys that scatters neighbouring cells (splitmix64's finaliser): sorting voxels by it
+// gives a deterministic order with no spatial run in it, as Open3D's hash map gives.
+inline uint64_t scramble(uint64_t x) {
+    x ^= x >> 30;
+    x *= 0xbf58476d1ce4e5b9ULL;
+    x ^= x >> 27;
+    x *= 0x94d049bb133111ebULL;
+    x ^= x >> 31;
+    return x;
+}
+
 inline void cloud_min(const double *p, int64_t n, double lo[3]) {
     lo[0] = lo[1] = lo[2] = std::numeric_limits<double>::infinity();
     for (int64_t i = 0; i < n; ++i)
