@@ -25,6 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from fastmac_exp.samplers.keep_size import KeepParams  # noqa: E402
 from studies.estimated_scores import shared_inputs, synthetic_inputs  # noqa: E402
 
 OUT = REPO / "outputs" / "studies" / "keep_size"
@@ -36,7 +37,8 @@ def methods(core_inliers: list[float], scarce_ratios: list[float]) -> list[tuple
     out: list[tuple[str, object, object]] = [("MAC", 1.0, None), ("r0.2", 0.2, None), ("r0.05", 0.05, None)]
     for c in core_inliers:
         for r in scarce_ratios:
-            label = "auto" if (c, r) == (200.0, 0.2) else f"auto{int(c)}/{r:g}"
+            d = KeepParams()
+            label = "auto" if (c, r) == (d.core_inliers, d.scarce_ratio) else f"auto{int(c)}/{r:g}"
             out.append((label, 0.2, ("auto", {"core_inliers": c, "scarce_ratio": r})))
     return out
 
@@ -144,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--per-family", type=int, default=8)
     ap.add_argument("--core-inliers", type=float, nargs="*", default=[200.0])
-    ap.add_argument("--scarce-ratio", type=float, nargs="*", default=[0.2])
+    ap.add_argument("--scarce-ratio", type=float, nargs="*", default=[KeepParams().scarce_ratio])
     ap.add_argument("--only", default=None, help="a substring of the inputs' names")
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--section", action="store_true", help="rewrite docs/results.md from the last run")
