@@ -11,6 +11,7 @@ from fastmac_exp.datasets.planted import planted
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.samplers import GraphFilterSampler, RandomSampler, draw_proportional
+from fastmac_exp.backends.product_bound import densest_within
 from fastmac_exp.samplers.keep_size import KeepParams, auto_keep, dense_core, expected_inclusion, keep_covering
 
 
@@ -125,3 +126,66 @@ def test_run_keys_accept_auto():
         check_run_keys(_cfg(samples="most"))
     with pytest.raises(InputError, match="ratio must be a number in"):
         check_run_keys(_cfg(ratio="half"))
+
+
+# ---- MAC bounded before its products (fastmac_exp/backends/product_bound.py) ----------------------------
+
+
+def test_densest_within_is_the_largest_prefix_in_budget():
+    rng = np.random.default_rng(4)
+    degree = rng.uniform(0, 400, 700)
+    order = np.argsort(-degree, kind="stable")
+    for budget in (1e4, 3e5, 2e6, 1e7, 1e12):
+        sub = densest_within(degree, budget)
+
+        def work(k):
+            return np.sum(np.minimum(degree[order[:k]], k) ** 2)
+
+        k = len(sub)
+        assert np.array_equal(sub, np.sort(order[:k]))
+        assert k == 700 or (work(k) <= budget or k == 3) and work(k + 1) > budget
+
+
+def _near_clique(n=1_500, seed=3):
+    corr, gt = planted(n, inlier_ratio=0.7, noise=0.05, seed=seed, room=(30.0, 30.0, 4.0))
+    return corr, gt, mac_params_for("kitti", "fpfh")
+
+
+def test_bounded_mac_is_exact_within_budget():
+    from dataclasses import replace
+
+    from fastmac_exp.backends.cpp import CppBackend
+
+    corr, _, params = _near_clique()
+    exact = CppBackend().register(corr, replace(params, max_product_work=0))
+    same = CppBackend().register(corr, params)  # the default budget: this graph is well within it
+    assert "product work" not in same.cap_hit
+    assert np.array_equal(same.pose, exact.pose) and np.array_equal(same.clique, exact.clique)
+
+
+def test_bounded_mac_gives_the_exact_pose_on_a_near_clique():
+    from dataclasses import replace
+
+    from fastmac_exp.backends.cpp import CppBackend
+    from fastmac_exp.backends.product_bound import estimated_degrees, product_work
+    from fastmac_exp.transforms import rotation_error_deg
+
+    for seed in (3, 5):
+        corr, gt, params = _near_clique(seed=seed)
+        work = product_work(estimated_degrees(corr.src, corr.tgt, params))
+        exact = CppBackend().register(corr, replace(params, max_product_work=0))
+        bounded = CppBackend().register(corr, replace(params, max_product_work=work / 20))
+        assert "product work: MAC on the" in bounded.cap_hit
+        k = int(bounded.cap_hit.split("MAC on the ")[1].split()[0])
+        assert 3 <= k < len(corr) // 2  # a twentieth of the work: well under half the nodes
+        assert len(bounded.kept) == len(corr) and bounded.clique.max() < len(corr)
+        assert corr.labels[bounded.clique].mean() == 1.0  # the consensus: inliers only
+        assert rotation_error_deg(bounded.pose[:3, :3], exact.pose[:3, :3]) < 0.5
+        assert np.linalg.norm(bounded.pose[:3, 3] - exact.pose[:3, 3]) < 0.05
+        assert rotation_error_deg(bounded.pose[:3, :3], gt[:3, :3]) < 1.0
+
+
+def test_max_product_work_is_checked():
+    with pytest.raises(InputError, match="mac.max_product_work must be >= 0"):
+        mac_params_for("kitti", "fpfh", mac_overrides={"max_product_work": -1})
+    assert mac_params_for("kitti", "fpfh", mac_overrides={"max_product_work": 0}).max_product_work == 0
