@@ -8,7 +8,9 @@ Inputs: every FPFH keypoint of the real LiDAR pair (voxel 0.05 m, ~28,500 one-wa
 outdoor-like scene (60 x 60 x 4 m, noise 0.1 m) at 200,000 and 1,000,000 correspondences with 2 % and
 10 % inliers. Configurations: ratio 0.2, ratio 0.05, samples=2500, samples=auto, and a random keep of
 auto's size (the "random keep + MAC" peer); --kiss adds KISS-Matcher on all N (tens of seconds on the real
-ones). Each run is a fresh process (a warm-up call first, then the timed one), killed past --timeout; with
+ones); --unbounded adds each run without MAC's product-work bound (the exact products at any keep size,
+as before issue 41). Each run is a fresh process (a warm-up call first, then the timed one), killed past
+--timeout; with
 --old, every run is made with the old core and this one alternately (FASTMAC_CORE_SO), so both see the
 same load. Prints the CPU model and the load average before and after each input.
 """
@@ -91,8 +93,11 @@ def load_case(case: str):
     return corr, z["gt"], params, sgraph, fam, float(z["re"]), float(z["te"])
 
 
-def run_case(case: str, config: str, samples_override: int | None) -> dict:
-    """One timed run (after a warm-up on 2,000 of the same correspondences), in this process."""
+def run_case(case: str, config: str, samples_override: int | None, bound: bool = True) -> dict:
+    """One timed run (after a warm-up on 2,000 of the same correspondences), in this process; bound=False:
+    MAC without its product-work bound (mac.max_product_work=0, the exact products at any size)."""
+    from dataclasses import replace
+
     from fastmac_exp import core
     from fastmac_exp.backends.cpp import CppBackend
     from fastmac_exp.metrics import pose_errors
@@ -100,6 +105,8 @@ def run_case(case: str, config: str, samples_override: int | None) -> dict:
     from fastmac_exp.samplers import GraphFilterSampler, RandomSampler
 
     corr, gt, params, sgraph, fam, re_t, te_t = load_case(case)
+    if not bound:
+        params = replace(params, max_product_work=0)
     warm = corr.subset(np.arange(min(2000, len(corr))))
     try:
         register_correspondences(warm, params, GraphFilterSampler(), CppBackend(), 0.2, fam,
@@ -120,7 +127,8 @@ def run_case(case: str, config: str, samples_override: int | None) -> dict:
         (ratio, samples), sampler = CONFIGS[config], GraphFilterSampler()
     Path("/proc/self/clear_refs").write_text("5") if Path("/proc/self/clear_refs").exists() else None
     t0 = time.perf_counter()
-    res, s = register_correspondences(corr, params, sampler, CppBackend(), ratio, fam, np.random.default_rng(1),
+    rng = np.random.default_rng(1)
+    res, s = register_correspondences(corr, params, sampler, CppBackend(), ratio, fam, rng,
                                       sample_graph=sgraph, samples=samples)  # fmt: skip
     total = (time.perf_counter() - t0) * 1e3
     err = pose_errors(res.pose, gt, re_t, te_t)
@@ -131,15 +139,17 @@ def run_case(case: str, config: str, samples_override: int | None) -> dict:
     out = {k: float(res.timings.get(k, 0.0)) for k in STAGES}
     out.update(total=total, k=len(s.indices), kept_inl=float(corr.labels[s.indices].mean()),
                ok=bool(err.success), re=float(err.re_deg), cap=res.cap_hit or "", rss=rss, core=s.core,
-               scores=s.scores_used, bf16=bool(core.bf16_cores()) if hasattr(core, "bf16_cores") else None)  # fmt: skip
+               scores=s.scores_used, bf16=bool(core.core().bf16_cores()))  # fmt: skip
     return out
 
 
-def child(case: str, config: str, timeout: float, so: str | None, samples: int | None = None) -> dict:
+def child(case: str, config: str, timeout: float, so: str | None, samples: int | None = None,
+          bound: bool = True) -> dict:  # fmt: skip
     env = dict(os.environ)
     if so:
         env["FASTMAC_CORE_SO"] = so
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, config, str(samples or 0)]
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, config, str(samples or 0),
+           str(int(bound))]  # fmt: skip
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=REPO)
     except subprocess.TimeoutExpired:
@@ -165,19 +175,27 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--child"]:
-        case, config, samples = argv[1], argv[2], int(argv[3])
-        print(json.dumps(run_case(case, config, samples or None)))
+        case, config, samples, bound = argv[1], argv[2], int(argv[3]), bool(int(argv[4]))
+        print(json.dumps(run_case(case, config, samples or None, bound)))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", nargs="*", default=list(REAL) + list(PLANTED))
     ap.add_argument("--configs", nargs="*", default=list(CONFIGS) + ["random"])
     ap.add_argument("--timeout", type=float, default=120.0, help="seconds a run may take before it is killed")
-    ap.add_argument("--old", default=None, help="an older core's _mac_core*.so, run alternately with this one")
+    ap.add_argument(
+        "--old", default=None, help="an older core's _mac_core*.so, run alternately with this one"
+    )
     ap.add_argument("--kiss", action="store_true", help="also KISS-Matcher on every correspondence")
+    ap.add_argument(
+        "--unbounded",
+        action="store_true",
+        help="also each run without MAC's product-work bound (mac.max_product_work=0), alternately",
+    )
     args = ap.parse_args(argv)
     print(f"FastMAC by keep size (issue 41); CPU: {cpu_model()}, {os.cpu_count()} logical CPUs; stages ms: "
           f"{' + '.join(STAGES)}")  # fmt: skip
-    builds = [("new", None)] + ([("old", args.old)] if args.old else [])
+    builds = [("new", None, True)] + ([("old", args.old, True)] if args.old else [])
+    builds += [("unbounded", None, False)] if args.unbounded else []
     for case in args.cases:
         if case in REAL and real_input(case) is None:
             print(f"{case}: no shared data at {DATA}; skipped")
@@ -186,11 +204,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{case}: N {len(corr):,d}, {100 * corr.labels.mean():.1f} % inliers; load average {load()}")
         auto_k: dict[str, int] = {}
         for config in args.configs + (["kiss"] if args.kiss else []):
-            for tag, so in (builds[::-1] if len(builds) > 1 else builds):  # old first, then new
+            for tag, so, bound in builds[::-1]:  # old (or unbounded) first, then new
                 if config == "random" and tag not in auto_k:
                     r = {"error": "no auto run to size it"}
                 else:
-                    r = child(case, config, args.timeout, so, auto_k.get(tag) if config == "random" else None)
+                    r = child(case, config, args.timeout, so, auto_k.get(tag) if config == "random" else None,
+                              bound)  # fmt: skip
                 if config == "auto" and "k" in r:
                     auto_k[tag] = r["k"]
                 label = f"{config}{' (' + tag + ')' if len(builds) > 1 else ''}"

@@ -5,7 +5,8 @@
 
 For every real pair of ../shared/data (5,000 FPFH correspondences, as the other studies) and the synthetic
 3DMatch-, 3DLoMatch- and KITTI-like pairs: MAC (every correspondence), FastMAC at ratio 0.2 and 0.05 and
-FastMAC with samples=auto (one column per `core_inliers` and `scarce_ratio` asked; "auto" is the defaults), `seeds` seeds each, through the pipeline's
+FastMAC with samples=auto (one column per `core_inliers` and `scarce_ratio` asked; "auto": the
+defaults), `seeds` seeds each, through the pipeline's
 own run_pair (honest protocol, C++ backend): registrations, the keep's size and inlier ratio, the dense
 core auto estimated, and the median time from the correspondences.
 """
@@ -87,11 +88,13 @@ def render(results: dict) -> list[str]:
     recs = results["inputs"]
     labels = list(recs[0]["methods"]) if recs else []
     lines = [SECTION, "",
-             f"`python -m studies.keep_size` ({results['seeds']} seeds; {results['cpu']}; load average at the "
+             f"`python -m studies.keep_size` ({results['seeds']} seeds; {results['cpu']}; load average "
+             "at the "
              f"start {results['load']}). Per input: registrations out of {results['seeds']} (MAC is "
              "deterministic: its one run counted for every seed), the keep's size and inliers (means), "
              "auto's estimated dense core, median ms from the correspondences (sampling + MAC).", "",
-             "| input | N | inliers | " + " | ".join(f"{lb} ok / kept (inl) / ms" for lb in labels) + " | core |",
+             "| input | N | inliers | "
+             + " | ".join(f"{lb} ok / kept (inl) / ms" for lb in labels) + " | core |",
              "|---|---:|---:|" + "---:|" * len(labels) + "---:|"]  # fmt: skip
     for r in recs:
         cells = []
@@ -113,7 +116,11 @@ def render(results: dict) -> list[str]:
             m = r["methods"][lb]
             if lb.startswith("auto") and mac_ok and m["ok"] < m["seeds"]:
                 lost.append(f"{r['name']} {lb} {m['ok']}/{m['seeds']}")
-    lines += ["", "Pairs MAC registers that auto loses on some seed: " + (", ".join(lost) or "none") + ".", ""]
+    lines += [
+        "",
+        "Pairs MAC registers that auto loses on some seed: " + (", ".join(lost) or "none") + ".",
+        "",
+    ]
     return lines
 
 
@@ -169,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
             rec = run_input(group, name, pair, corr, args.seeds, cols)
             results["inputs"].append(rec)
             print(f"{group:12s} {name[:40]:40s} N {rec['n']:5d} inl {rec['inliers']:5d} " + "  ".join(
-                f"{lb} {m['ok']}/{m['seeds']} k{m['kept']:.0f}({m['kept_inliers']:.0f}) {m['ms']:.0f}ms c{m['core']}"
+                f"{lb} {m['ok']}/{m['seeds']} k{m['kept']:.0f}({m['kept_inliers']:.0f}) "
+                f"{m['ms']:.0f}ms c{m['core']}"
                 for lb, m in rec["methods"].items()))  # fmt: skip
             sys.stdout.flush()
             path.write_text(json.dumps(results, indent=1))

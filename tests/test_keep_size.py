@@ -6,13 +6,19 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from fastmac_exp.backends.product_bound import densest_within
 from fastmac_exp.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.datasets.planted import planted
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.samplers import GraphFilterSampler, RandomSampler, draw_proportional
-from fastmac_exp.backends.product_bound import densest_within
-from fastmac_exp.samplers.keep_size import KeepParams, auto_keep, dense_core, expected_inclusion, keep_covering
+from fastmac_exp.samplers.keep_size import (
+    KeepParams,
+    auto_keep,
+    dense_core,
+    expected_inclusion,
+    keep_covering,
+)
 
 
 def test_dense_core_of_planted_cliques_is_the_largest_consistent_group():

@@ -28,8 +28,10 @@ from fastmac_exp.params import MacParams
 ANCHORS = 512  # anchor correspondences of the degree estimate (N * ANCHORS compatibility tests)
 
 
-def estimated_degrees(src: np.ndarray, tgt: np.ndarray, params: MacParams, anchors: int = ANCHORS) -> np.ndarray:
-    """Every node's first-order degree (sum of weights), from evenly spaced anchors (exact where n <= anchors)."""
+def estimated_degrees(
+    src: np.ndarray, tgt: np.ndarray, params: MacParams, anchors: int = ANCHORS
+) -> np.ndarray:
+    """Every node's first-order degree (sum of weights) from evenly spaced anchors (exact: n <= anchors)."""
     n = len(src)
     m = min(n, anchors)
     idx = np.unique(np.linspace(0, n - 1, m).round().astype(np.int64))
@@ -78,7 +80,9 @@ def mae(pose: np.ndarray, src: np.ndarray, tgt: np.ndarray, tau: float) -> float
     return float(np.sum((tau - e[e < tau]) / tau))
 
 
-def refine_on(pose: np.ndarray, src: np.ndarray, tgt: np.ndarray, params: MacParams) -> tuple[np.ndarray, float]:
+def refine_on(
+    pose: np.ndarray, src: np.ndarray, tgt: np.ndarray, params: MacParams
+) -> tuple[np.ndarray, float]:
     """Spec 5.3 on the whole keep from MAC's hypothesis (the C++ core's fit: unweighted centroids)."""
     tau = params.inlier_threshold
     score = prev = mae(pose, src, tgt, tau)
@@ -93,7 +97,9 @@ def refine_on(pose: np.ndarray, src: np.ndarray, tgt: np.ndarray, params: MacPar
         if len(inl) < 3:
             break
         w = 1.0 / (1.0 + (e[inl] / tau) ** 2)
-        pose = np.asarray(core.core().kabsch(s_pts[inl], t_pts[inl], np.ascontiguousarray(w, dtype=np.float64)))
+        pose = np.asarray(
+            core.core().kabsch(s_pts[inl], t_pts[inl], np.ascontiguousarray(w, dtype=np.float64))
+        )
     return pose, score
 
 

@@ -12,7 +12,7 @@ from fastmac_exp.families import family as family_record
 from fastmac_exp.graph import GraphSignals, compute_signals
 from fastmac_exp.graph.estimate import EstimateParams, choose_scores, estimate_signals
 from fastmac_exp.params import GraphParams
-from fastmac_exp.samplers.base import SampleResult, Sampler, draw_proportional, minmax
+from fastmac_exp.samplers.base import Sampler, SampleResult, draw_proportional, minmax
 from fastmac_exp.samplers.keep_size import KeepParams, auto_keep, keep_params
 from fastmac_exp.types import Correspondences
 
