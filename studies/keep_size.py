@@ -125,14 +125,18 @@ def render(results: dict) -> list[str]:
 
 
 def write_section(results: dict, page: Path = REPO / "docs" / "results.md") -> None:
-    text = page.read_text() if page.exists() else ""
-    body = "\n".join(render(results))
+    """Replace (or add before ## Notes) section 9 of docs/results.md."""
+    text = page.read_text()
+    block = "\n".join(render(results)) + "\n"
     if SECTION in text:
-        head, rest = text.split(SECTION, 1)
-        nxt = rest.find("\n## ")
-        text = head + body + (rest[nxt:] if nxt >= 0 else "\n")
+        start = text.index(SECTION)
+        nxt = text.find("\n## ", start + len(SECTION))
+        text = text[:start] + block + (text[nxt + 1 :] if nxt >= 0 else "")
+    elif "\n## Notes" in text:
+        i = text.index("\n## Notes")
+        text = text[: i + 1] + block + "\n" + text[i + 1 :]
     else:
-        text = text.rstrip("\n") + "\n\n" + body + "\n"
+        text = text.rstrip() + "\n\n" + block
     page.write_text(text)
 
 

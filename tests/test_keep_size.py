@@ -195,3 +195,17 @@ def test_max_product_work_is_checked():
     with pytest.raises(InputError, match="mac.max_product_work must be >= 0"):
         mac_params_for("kitti", "fpfh", mac_overrides={"max_product_work": -1})
     assert mac_params_for("kitti", "fpfh", mac_overrides={"max_product_work": 0}).max_product_work == 0
+
+
+def test_cli_run_with_samples_auto_records_the_keep(tmp_path):
+    import pandas as pd
+
+    from tests.test_cli import run
+
+    p = run("limit=1", "samples=auto", "dataset.family=kitti", f"cache.dir={tmp_path / 'cache'}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    row = pd.read_csv(tmp_path / "run" / "results.csv").iloc[0]
+    assert row["samples"] == "auto" and row["core"] > 0
+    assert row["n_kept"] < row["n_in"] and np.isclose(row["ratio"], row["n_kept"] / row["n_in"])
+    bad = run("limit=1", "samples=auto", "sampler=random", tmp=tmp_path / "bad")
+    assert bad.returncode != 0 and "samples=auto sizes the keep" in bad.stdout + bad.stderr
