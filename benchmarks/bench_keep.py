@@ -94,7 +94,8 @@ def load_case(case: str):
 
 
 def run_case(case: str, config: str, samples_override: int | None, bound: bool = True) -> dict:
-    """One timed run (after a warm-up on 2,000 of the same correspondences), in this process; bound=False:
+    """One timed run (after a warm-up with samples=auto on 10,000 of the same correspondences, which runs
+    the estimated scores, the keep's rule and MAC), in this process; bound=False:
     MAC without its product-work bound (mac.max_product_work=0, the exact products at any size)."""
     from dataclasses import replace
 
@@ -107,10 +108,10 @@ def run_case(case: str, config: str, samples_override: int | None, bound: bool =
     corr, gt, params, sgraph, fam, re_t, te_t = load_case(case)
     if not bound:
         params = replace(params, max_product_work=0)
-    warm = corr.subset(np.arange(min(2000, len(corr))))
+    warm = corr.subset(np.arange(min(10_000, len(corr))))
     try:
         register_correspondences(warm, params, GraphFilterSampler(), CppBackend(), 0.2, fam,
-                                 np.random.default_rng(0), sample_graph=sgraph)  # fmt: skip
+                                 np.random.default_rng(0), sample_graph=sgraph, samples="auto")  # fmt: skip
     except Exception:  # noqa: BLE001 - the warm-up only loads code and pages
         pass
     if config == "kiss":
