@@ -33,6 +33,24 @@ OUT = REPO / "outputs" / "studies" / "keep_size"
 SECTION = "## 9. Keep size from the scores (samples=auto)"
 
 
+def thinned_inputs(inputs, inliers: int = 45, n: int = 3431, seeds=(0, 1)):
+    """The issue's 3DLoMatch-like case (45 inliers among 3,431, 1.3 %) built from the real indoor pairs:
+    `inliers` of a pair's inliers and n - inliers of its outliers, drawn without replacement."""
+    from fastmac_exp.types import Correspondences
+
+    for group, name, pair, corr in inputs:
+        lab = corr.labels.astype(bool)
+        if group != "real_indoor" or lab.sum() < inliers or (~lab).sum() < n - inliers:
+            continue
+        for seed in seeds:
+            rng = np.random.default_rng([seed, 45])
+            idx = np.concatenate([rng.choice(np.flatnonzero(lab), inliers, replace=False),
+                                  rng.choice(np.flatnonzero(~lab), n - inliers, replace=False)])  # fmt: skip
+            idx = rng.permutation(idx)
+            sub = Correspondences(corr.src[idx], corr.tgt[idx], labels=lab[idx])
+            yield "thinned", f"{name}_thin{inliers}_{seed}", pair, sub
+
+
 def methods(core_inliers: list[float], scarce_ratios: list[float]) -> list[tuple[str, object, object]]:
     """(label, ratio, samples) of each column: samples ("auto", KeepParams fields) for auto's."""
     out: list[tuple[str, object, object]] = [("MAC", 1.0, None), ("r0.2", 0.2, None), ("r0.05", 0.05, None)]
@@ -124,10 +142,20 @@ def render(results: dict) -> list[str]:
     return lines
 
 
-def write_section(results: dict, page: Path = REPO / "docs" / "results.md") -> None:
-    """Replace (or add before ## Notes) section 9 of docs/results.md."""
+def write_section(
+    results: dict, page: Path = REPO / "docs" / "results.md", thinned: dict | None = None
+) -> None:
+    """Replace (or add before ## Notes) section 9 of docs/results.md (and the thinned inputs' table)."""
     text = page.read_text()
-    block = "\n".join(render(results)) + "\n"
+    lines = render(results)
+    if thinned:
+        lines += [
+            "### The issue's 3DLoMatch-like case: real indoor pairs thinned to 45 inliers among 3,431",
+            "",
+        ]
+        cmd = "`python -m studies.keep_size --thinned`"
+        lines += [ln.replace("`python -m studies.keep_size`", cmd) for ln in render(thinned)[2:]]
+    block = "\n".join(lines) + "\n"
     if SECTION in text:
         start = text.index(SECTION)
         nxt = text.find("\n## ", start + len(SECTION))
@@ -160,18 +188,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scarce-ratio", type=float, nargs="*", default=[KeepParams().scarce_ratio])
     ap.add_argument("--only", default=None, help="a substring of the inputs' names")
     ap.add_argument("--no-synthetic", action="store_true")
+    ap.add_argument(
+        "--thinned",
+        action="store_true",
+        help="only the real indoor pairs thinned to 45 inliers among 3,431 (the issue's 3DLoMatch-like case)",
+    )
     ap.add_argument("--section", action="store_true", help="rewrite docs/results.md from the last run")
     args = ap.parse_args(argv)
     OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / "results.json"
+    path = OUT / ("thinned.json" if args.thinned else "results.json")
     if args.section:
-        write_section(json.loads(path.read_text()))
+        thin = OUT / "thinned.json"
+        write_section(json.loads((OUT / "results.json").read_text()),
+                      thinned=json.loads(thin.read_text()) if thin.exists() else None)  # fmt: skip
         return 0
     cols = methods(args.core_inliers, args.scarce_ratio)
     results = {"seeds": args.seeds, "cpu": cpu_model(), "load": " ".join(f"{x:.1f}" for x in os.getloadavg()),
                "inputs": []}  # fmt: skip
     sources = [shared_inputs()]
-    if not args.no_synthetic:
+    if args.thinned:
+        sources = [thinned_inputs(list(shared_inputs()))]
+    if not args.no_synthetic and not args.thinned:
         sources.append(synthetic_inputs(args.per_family))
     for src in sources:
         for group, name, pair, corr in src:

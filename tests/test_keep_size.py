@@ -70,8 +70,8 @@ def test_auto_keep_plentiful_small_scarce_large():
     k, core = auto_keep(scores, _degrees(4_000, n), kp)
     assert core == 4_000 and abs(k - n * kp.core_inliers / 4_000) <= 1  # 1,000 (over min_keep)
     k, core = auto_keep(scores, _degrees(50, n), kp)
-    assert core == 50 and k >= n * kp.scarce_ratio * kp.core_inliers / 50  # 40 % of N at least
-    k, core = auto_keep(scores, _degrees(15, n), kp)
+    assert core == 50 and k >= n * kp.scarce_ratio * kp.core_inliers / 50  # 80 % of N at least
+    k, core = auto_keep(scores, _degrees(35, n), kp)
     assert k == n  # a core under scarce_ratio * core_inliers: every node (plain MAC)
     assert auto_keep(np.ones(300), _degrees(100, 300), kp)[0] == 300  # N under min_keep
 
@@ -81,7 +81,7 @@ def test_auto_keep_extends_ratio_02_where_scarce():
     # keep holds ratio 0.2's keep whole (same stream)
     rng = np.random.default_rng(0)
     scores = rng.uniform(0, 1, 5_000)
-    k, _ = auto_keep(scores, _degrees(60, 5_000))
+    k, _ = auto_keep(scores, _degrees(120, 5_000))
     assert k >= 1_000
     small, _ = draw_proportional(scores, 1_000, np.random.default_rng(9))
     large, _ = draw_proportional(scores, k, np.random.default_rng(9))

@@ -15,8 +15,8 @@ time, so the size is set by the inliers the keep is expected to hold, not by N o
 3. where the core is smaller (inliers scarce, or a sparse graph whose scores separate them poorly), the
    keep must not lose the few there are: the smallest keep expected to hold `scarce_cover` of the core,
    and at least N * min(1, scarce_ratio * core_inliers / core) of the nodes: ratio 0.2's keep, or a
-   superset of it (the Gumbel-top-k draw of k + j nodes extends the draw of k), from a core of 100 down,
-   all N (plain MAC) from a core of scarce_ratio * core_inliers (20) down.
+   superset of it (the Gumbel-top-k draw of k + j nodes extends the draw of k), from a core of 200 down,
+   all N (plain MAC) from a core of scarce_ratio * core_inliers (40) down.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ class KeepParams:
     min_keep: int = 500  # fewest kept (or N where smaller)
     core_share: float = 0.5  # a core member's sqrt(s - 1) is at least this share of the core's size
     scarce_cover: float = 0.9  # a core smaller than core_inliers: the share of it the keep should hold
-    scarce_ratio: float = 0.1  # ... and the keep at least N * min(1, scarce_ratio * core_inliers / core)
+    scarce_ratio: float = 0.2  # ... and the keep at least N * min(1, scarce_ratio * core_inliers / core)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.core_inliers) and self.core_inliers >= 3):
