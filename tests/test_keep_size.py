@@ -209,3 +209,12 @@ def test_cli_run_with_samples_auto_records_the_keep(tmp_path):
     assert row["n_kept"] < row["n_in"] and np.isclose(row["ratio"], row["n_kept"] / row["n_in"])
     bad = run("limit=1", "samples=auto", "sampler=random", tmp=tmp_path / "bad")
     assert bad.returncode != 0 and "samples=auto sizes the keep" in bad.stdout + bad.stderr
+
+
+def test_register_facade_takes_ratio_auto():
+    from fastmac_exp.api import register
+
+    corr, gt = planted(3_000, inlier_ratio=0.3, noise=0.05, seed=2, room=(20.0, 20.0, 4.0))
+    res = register(corr, family="kitti", ratio="auto")
+    assert res.ok and len(res.kept) < len(corr)
+    assert np.linalg.norm(res.pose[:3, 3] - gt[:3, 3]) < 0.3
