@@ -3,6 +3,7 @@
     python benchmarks/bench_core.py [--quick] [--sizes 1000 5000] [--ratios 1 0.2] [--threads 0]
                                     [--no-python] [--no-dense] [--no-outdoor | --outdoor-only]
                                     [--no-turboreg | --turboreg-only] [--json out.json]
+    python benchmarks/bench_core.py --keep-only [bench_keep.py's options]   # issue 41: large inputs by keep
 
 TurboReg section (issue 32): backend=turboreg, MAC, FastMAC@20 and FastMAC@20 + TurboReg end to end on the
 10 real reference sets of ../shared/data/turboreg_reference (indoor and outdoor, <= 5,000 FPFH
@@ -624,6 +625,11 @@ def bench_outdoor_large(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if "--keep-only" in argv:  # issue 41's large inputs by keep size (benchmarks/bench_keep.py, its options)
+        from benchmarks.bench_keep import main as keep_main
+
+        return keep_main([a for a in argv if a != "--keep-only"])
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="N up to 5000, ratios 1 and 0.2, fewer repeats")
     ap.add_argument("--sizes", type=int, nargs="*", default=None)

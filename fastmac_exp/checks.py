@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import PROTOCOLS
+from fastmac_exp.samplers.keep_size import is_auto
 
 
 def _is_int(v: Any) -> bool:
@@ -20,11 +21,15 @@ def check_run_keys(cfg: DictConfig) -> None:
     if cfg.get("protocol") not in PROTOCOLS:
         raise InputError(f"protocol must be one of {PROTOCOLS}, got {cfg.get('protocol')!r}")
     ratio = cfg.get("ratio")
-    if isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0:
-        raise InputError(f"ratio must be a number in (0, 1], got {ratio!r} (config key: ratio)")
+    if not is_auto(ratio) and (
+        isinstance(ratio, bool) or not isinstance(ratio, int | float) or not 0.0 < float(ratio) <= 1.0
+    ):
+        raise InputError(f"ratio must be a number in (0, 1] or auto, got {ratio!r} (config key: ratio)")
     samples = cfg.get("samples")
-    if samples is not None and (not _is_int(samples) or samples < 3):
-        raise InputError(f"samples must be null or an integer >= 3, got {samples!r} (config key: samples)")
+    if samples is not None and not is_auto(samples) and (not _is_int(samples) or samples < 3):
+        raise InputError(
+            f"samples must be null, auto or an integer >= 3, got {samples!r} (config key: samples)"
+        )
     seed = cfg.get("seed")
     if not _is_int(seed) or seed < 0:
         raise InputError(f"seed must be a whole number >= 0, got {seed!r} (config key: seed)")
@@ -40,3 +45,17 @@ def check_run_keys(cfg: DictConfig) -> None:
         mac_params_for("3dmatch", "fpfh", graph_overrides=graph, mac_overrides=mac)
     except TypeError as exc:
         raise InputError(f"graph/mac override of the wrong type: {exc}") from None
+
+
+def run_samples(cfg: DictConfig) -> int | str | None:
+    """The run's sample count: "auto" (samples=auto or ratio=auto: the keep sized from the scores), an
+    integer, or None (ratio's fraction)."""
+    samples = cfg.get("samples")
+    if is_auto(samples) or (samples is None and is_auto(cfg.get("ratio"))):
+        return "auto"
+    return None if samples is None else int(samples)
+
+
+def run_ratio(cfg: DictConfig) -> float:
+    """The run's ratio as a number (NaN for ratio=auto: each pair's row says what its keep was)."""
+    return float("nan") if is_auto(cfg.get("ratio")) else float(cfg.ratio)

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
 from fastmac_exp.cache import CorrespondenceCache
-from fastmac_exp.checks import check_run_keys
+from fastmac_exp.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PairOutcome, run_pair
@@ -92,7 +92,7 @@ def pair_rng(seed: int, index: int) -> np.random.Generator:
 def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
     """Run one pair; any exception becomes a failed row with the error message (fault isolation)."""
     cfg = comp.cfg
-    row = PairRow(index=index, pair=name, **comp.labels, ratio=float(cfg.ratio), seed=int(cfg.seed),
+    row = PairRow(index=index, pair=name, **comp.labels, ratio=run_ratio(cfg), seed=int(cfg.seed),
                   protocol=str(cfg.protocol))  # fmt: skip
     try:
         pair = comp.dataset.load(index)
@@ -102,7 +102,7 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
             comp.descriptor,
             comp.sampler,
             comp.backend,
-            float(cfg.ratio),
+            run_ratio(cfg),
             pair_rng(cfg.seed, index),
             protocol=str(cfg.protocol),
             graph_overrides=OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None,
@@ -110,7 +110,7 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
             row=row,
             cache=comp.cache,
             cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
-            samples=None if cfg.get("samples") is None else int(cfg.samples),
+            samples=run_samples(cfg),
         )
         return outcome
     except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run
@@ -284,7 +284,7 @@ def _run_locked(
             backend=comp.labels["backend"],
             ratio=float(table["ratio"].dropna().iloc[0])
             if table["ratio"].dropna().nunique() == 1
-            else float(cfg.ratio),
+            else run_ratio(cfg),
             seed=int(cfg.seed),
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,

@@ -70,6 +70,10 @@ DEFAULT_MAX_WORK = 250_000_000
 # much enumeration first (at most ~80 ms of a core on 5,000 nodes, ~16 ms on FastMAC@20's 1,000). Whether
 # it is over budget is a property of the graph, not of threads or timing.
 DEFAULT_ENUMERATE_BUDGET = 16_000
+# MAC's second-order products cost ~sum_i deg_i^2 multiply-adds each (the wedges; m^3 on a dense core of m);
+# past this, predicted before the products from an anchor estimate of the degrees, MAC runs on the densest
+# part of the keep that fits and refines on all of it (fastmac_exp/backends/product_bound.py).
+DEFAULT_MAX_PRODUCT_WORK = 3_000_000_000
 
 
 @dataclass(frozen=True)
@@ -95,13 +99,16 @@ class MacParams:
     max_nodes: int = DEFAULT_MAX_NODES
     max_work: int = DEFAULT_MAX_WORK
     enumerate_budget: int = DEFAULT_ENUMERATE_BUDGET  # auto only, work units a node; 0 = always bnb
+    # predicted multiply-adds of the second-order products (sum of squared degrees) past which MAC runs on
+    # the densest nodes that fit (C++ backend; 0 = off: always the exact products)
+    max_product_work: float = DEFAULT_MAX_PRODUCT_WORK
     time_limit_s: float = 0.0  # wall-clock safety net on the clique search, 0 = off (not reproducible)
     family: str = ""  # the dataset family the defaults came from (mac_params_for); peers take theirs by it
 
     def __post_init__(self) -> None:
         if self.search not in SEARCHES:
             raise InputError(f"mac.search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
-        for name in ("max_cliques", "max_nodes", "max_work"):
+        for name in ("max_cliques", "max_nodes", "max_work", "max_product_work"):
             if getattr(self, name) < 0:
                 raise InputError(f"mac.{name} must be >= 0 (0 = no cap), got {getattr(self, name)}")
         if self.enumerate_budget < 0:
@@ -160,6 +167,7 @@ def mac_params_for(
         "max_nodes",
         "max_work",
         "enumerate_budget",
+        "max_product_work",
         "time_limit_s",
     }
     if set(m) - known:

@@ -53,7 +53,7 @@ def run_pair(
     row: PairRow | None = None,
     cache: CorrespondenceCache | None = None,
     cache_key: str | None = None,
-    samples: int | None = None,
+    samples: int | str | None = None,
 ) -> PairOutcome:
     """Describe, sample, register and evaluate one pair; exceptions propagate to the caller.
 
@@ -95,6 +95,8 @@ def run_pair(
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
         row.set(scores=sample.scores_used, anchors=sample.anchors)
+    if sample.core:
+        row.set(core=sample.core)
     row.set(
         samples=samples,
         ratio=sample.ratio,
@@ -161,13 +163,13 @@ def register_correspondences(
     family: str = "3dmatch",
     rng: np.random.Generator | None = None,
     sample_graph: GraphParams | None = None,
-    samples: int | None = None,
+    samples: int | str | None = None,
 ) -> tuple[RegistrationResult, SampleResult]:
     """Sample, then run MAC on the kept correspondences. Indices in the result refer to `corr`.
 
     sample_graph: the sampler's compatibility graph, when it differs from MAC's (FastMAC's graph fixes the
     resolution at 0.006 where MAC computes it from the clouds); None = MAC's. samples: keep min(samples, N)
-    instead of floor(N * ratio).
+    instead of floor(N * ratio); "auto" (or ratio="auto"): the keep sized from the scores.
     """
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()

@@ -47,9 +47,10 @@ class PairRow:
     inliers_in: Any = UNSET
     inlier_ratio_in: Any = UNSET
     # sampling and MAC
-    samples: Any = UNSET  # the sample size asked for as a count (`samples=K`; ratio is then k / N)
+    samples: Any = UNSET  # the sample size asked for as a count (`samples=K` or auto; ratio is then k / N)
     scores: Any = UNSET  # graph-filter samplers: "exact" or "estimate" (what sampler.scores=auto chose)
     anchors: Any = UNSET  # the estimate's anchors (0 for exact scores)
+    core: Any = UNSET  # samples=auto: the estimated dense core that sized the keep (docs/keep_size.md)
     n_kept: Any = UNSET
     inlier_ratio_kept: Any = UNSET
     clique_size: Any = UNSET

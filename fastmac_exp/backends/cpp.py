@@ -7,9 +7,12 @@ same cliques and return the same pose up to floating-point rounding.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from fastmac_exp import core
+from fastmac_exp.backends.product_bound import bounded_subset, refine_on
 from fastmac_exp.core import graph_args, points
 from fastmac_exp.errors import RegistrationFailed
 from fastmac_exp.params import MacParams
@@ -39,9 +42,32 @@ class CppBackend:
         self.num_threads = int(num_threads)
 
     def register(self, corr: Correspondences, params: MacParams) -> RegistrationResult:
+        """MAC on every correspondence, or, where the second-order products' predicted work passes
+        mac.max_product_work, on the densest that fit, refined on all (product_bound.py)."""
         n = len(corr)
         if n < 3:
             raise RegistrationFailed(f"need at least 3 correspondences, got {n}")
+        t0 = time.perf_counter()
+        sub = bounded_subset(corr.src, corr.tgt, params)
+        counted = (time.perf_counter() - t0) * 1e3  # the work count belongs to the graph stage
+        if sub is None:
+            res = self._mac(corr, params)
+            res.timings["graph"] += counted
+            return res
+        res = self._mac(corr.subset(sub), params)
+        res.timings["graph"] += counted
+        t1 = time.perf_counter()
+        res.pose, res.score = refine_on(res.pose_unrefined, corr.src, corr.tgt, params)
+        res.kept = np.arange(n)
+        res.clique = sub[res.clique]
+        res.cap_hit = "; ".join(
+            c for c in (res.cap_hit, f"product work: MAC on the {len(sub)} densest of {n}") if c
+        )
+        res.timings["pose"] = res.timings.get("pose", 0.0) + (time.perf_counter() - t1) * 1e3
+        return res
+
+    def _mac(self, corr: Correspondences, params: MacParams) -> RegistrationResult:
+        n = len(corr)
         # The core raises fastmac_exp.errors.RegistrationFailed itself (no edge, no clique, no pose).
         r = self._core.mac(
             points(corr.src),

@@ -14,6 +14,7 @@ import numpy as np
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import GraphParams
+from fastmac_exp.samplers.keep_size import is_auto
 from fastmac_exp.types import Correspondences
 
 
@@ -30,11 +31,12 @@ class SampleResult:
     ratio: float = 1.0  # the ratio the sampler used: k / N (1.0 for `none`, whatever was asked)
     scores_used: str = ""  # graph filters: "exact" or "estimate" (what `scores=auto` chose)
     anchors: int = 0  # the estimate's anchors (0: exact scores)
+    core: int = 0  # samples=auto: the estimated dense core's size that set the keep (0: not auto)
 
 
 def sample_count(n: int, ratio: float, min_count: int = 3) -> int:
     """k = floor(n * ratio); ratio must lie in (0, 1] and k must allow a clique of `min_count`."""
-    if not (isinstance(ratio, int | float) and 0.0 < float(ratio) <= 1.0):
+    if isinstance(ratio, bool) or not (isinstance(ratio, int | float) and 0.0 < float(ratio) <= 1.0):
         raise InputError(f"ratio must be in (0, 1], got {ratio!r}")
     k = n if ratio >= 1.0 else int(np.floor(n * ratio + 1e-9))
     if k < min_count:
@@ -95,14 +97,21 @@ class Sampler:
     def sample(
         self,
         corr: Correspondences,
-        ratio: float,
+        ratio: float | str,
         gp: GraphParams,
         family: str,
         rng: np.random.Generator,
-        samples: int | None = None,
+        samples: int | str | None = None,
     ) -> SampleResult:
-        """Keep k = floor(N * ratio), or k = min(samples, N) when `samples` is given (it wins over ratio)."""
+        """Keep k = floor(N * ratio), or k = min(samples, N) when `samples` is given (it wins over ratio);
+        samples="auto" (or ratio="auto") sizes the keep from the scores (samplers that have them)."""
         n = len(corr)
+        if is_auto(samples) or (samples is None and is_auto(ratio)):
+            t0 = time.perf_counter()
+            res = self.select_auto(corr, gp, family, rng)
+            res.timings["sampling"] = (time.perf_counter() - t0) * 1e3
+            res.ratio = len(res.indices) / max(n, 1)
+            return res
         k = sample_count(n, ratio) if samples is None else count_from_samples(n, samples)
         t0 = time.perf_counter()
         if k >= n:
@@ -112,6 +121,15 @@ class Sampler:
         res.timings["sampling"] = (time.perf_counter() - t0) * 1e3
         res.ratio = float(ratio) if samples is None else len(res.indices) / max(n, 1)
         return res
+
+    def select_auto(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> SampleResult:
+        """The keep sized from the scores (samples=auto): graph-filter samplers only."""
+        raise InputError(
+            f"samples=auto sizes the keep from the graph's scores: sampler {self.name!r} has none "
+            "(use highpass, lowpass or allpass, or give samples as a count)"
+        )
 
     def select(
         self, corr: Correspondences, k: int, gp: GraphParams, family: str, rng: np.random.Generator

@@ -3,6 +3,8 @@ stochastically in proportion to it."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from fastmac_exp.errors import InputError
@@ -10,7 +12,8 @@ from fastmac_exp.families import family as family_record
 from fastmac_exp.graph import GraphSignals, compute_signals
 from fastmac_exp.graph.estimate import EstimateParams, choose_scores, estimate_signals
 from fastmac_exp.params import GraphParams
-from fastmac_exp.samplers.base import Sampler, minmax
+from fastmac_exp.samplers.base import Sampler, SampleResult, draw_proportional, minmax
+from fastmac_exp.samplers.keep_size import KeepParams, auto_keep, keep_params
 from fastmac_exp.types import Correspondences
 
 FILTERS = ("highpass", "lowpass", "allpass")
@@ -51,7 +54,8 @@ class GraphFilterSampler(Sampler):
     scores: exact (the whole graph, the reference), estimate (from anchors: docs/estimated_scores.md) or
     auto (exact where its predicted cost is small, else the estimate); estimate: the estimate's budget
     (EstimateParams' fields). The estimate's randomness is a child stream of the run's, so `auto` that
-    picks the exact scores draws the same sample as `exact`.
+    picks the exact scores draws the same sample as `exact`. keep: samples=auto's rule (KeepParams'
+    fields, docs/keep_size.md).
     """
 
     def __init__(
@@ -64,6 +68,7 @@ class GraphFilterSampler(Sampler):
         device: str = "cpu",
         scores: str = "auto",
         estimate: EstimateParams | dict | None = None,
+        keep: KeepParams | dict | None = None,
     ) -> None:
         if filter not in FILTERS:
             raise InputError(f"unknown graph filter {filter!r}; expected one of {FILTERS}")
@@ -78,6 +83,7 @@ class GraphFilterSampler(Sampler):
                 self.estimate = EstimateParams(**dict(estimate))
             except TypeError as exc:
                 raise InputError(f"sampler.estimate: {exc}") from None
+        self.keep = keep_params(keep)
         self.score_mode = scores
         self.filter = filter
         self.name = filter + ("_squared" if squared else "")
@@ -86,6 +92,23 @@ class GraphFilterSampler(Sampler):
         self.self_loops = self_loops
         self.impl = impl
         self.device = device
+
+    def select_auto(
+        self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
+    ) -> SampleResult:
+        """samples=auto: the scores, then the smallest keep expected to hold enough of the dense core."""
+        t0 = time.perf_counter()
+        sig, mode = self.signals(corr, gp, rng)
+        scores = filter_scores(sig, self.filter, family, self.squared, self.normalize)
+        k, core = auto_keep(scores, sig.degree, self.keep)
+        t1 = time.perf_counter()
+        if k >= len(corr):
+            idx, zero_filled = np.arange(len(corr), dtype=np.int64), 0
+        else:
+            idx, zero_filled = draw_proportional(scores, k, rng)
+        timings = {"sampling_prep": (t1 - t0) * 1e3, "sampling_draw": (time.perf_counter() - t1) * 1e3}
+        return SampleResult(indices=idx, scores=scores, zero_filled=zero_filled, timings=timings,
+                            scores_used=mode, anchors=sig.anchors, core=core)  # fmt: skip
 
     def scores(
         self, corr: Correspondences, gp: GraphParams, family: str, rng: np.random.Generator
