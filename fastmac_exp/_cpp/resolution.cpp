@@ -121,6 +121,20 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
     double vol = 1.0;
     for (int d = 0; d < 3; ++d) vol *= std::max(hi[d] - lo[d], ext * 1e-3);
     double h = std::cbrt(vol / double(n)) * 2.0;
+    // coarse rounds on every 16th point while the cells are far too full (a sixteenth of the points fills
+    // a cell about a sixteenth as much where cells hold many points)
+    if (n >= 65536) {
+        std::vector<double> sub;
+        for (int64_t i = 0; i < n; i += 16) sub.insert(sub.end(), p + 3 * i, p + 3 * i + 3);
+        const int64_t ns = int64_t(sub.size() / 3);
+        Grid gs;
+        for (int round = 0; round < 6; ++round) {
+            if (!build(sub.data(), ns, h, lo, gs)) break;
+            const double per_cell = 16.0 * double(ns) / double(gs.cell_key.size());
+            if (per_cell <= 32.0) break;
+            h *= std::max(0.25, std::sqrt(4.0 / per_cell));
+        }
+    }
     Grid g;
     for (int round = 0; round < 4; ++round) {
         if (!build(p, n, h, lo, g)) {
@@ -148,9 +162,11 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
                 const int64_t first = g.cell_start[c], last = g.cell_start[c + 1];
                 const int64_t *cc = &g.cx[3 * g.order[first]];
                 qx.clear(), qy.clear(), qz.clear(), qs.clear();
+                int64_t own = 0;  // where the cell's own points start among the candidates
                 for (int64_t dx = -1; dx <= 1; ++dx)
                     for (int64_t dy = -1; dy <= 1; ++dy)
                         visit_run(g, cc[0] + dx, cc[1] + dy, cc[2] - 1, cc[2] + 1, [&](int64_t s) {
+                            if (s == first) own = int64_t(qs.size());
                             qx.push_back(g.sorted[3 * s]);
                             qy.push_back(g.sorted[3 * s + 1]);
                             qz.push_back(g.sorted[3 * s + 2]);
@@ -161,7 +177,7 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
                 for (int64_t s = first; s < last; ++s) {
                     const double x = g.sorted[3 * s], y = g.sorted[3 * s + 1], z = g.sorted[3 * s + 2];
                     // the query itself sits at one position of the candidates: the minimum of both sides
-                    const int64_t self = int64_t(std::find(qs.begin(), qs.end(), s) - qs.begin());
+                    const int64_t self = own + (s - first);
                     double best = min_other_d2(x, y, z, qx.data(), qy.data(), qz.data(), m, self, dd.data());
                     // rings 2, 3, ... while a point there could be closer (ring r is >= (r - 1) h away, less a
                     // hair for a point that rounding put in the next cell)
