@@ -46,7 +46,7 @@ def voxel_down(points: np.ndarray, voxel: float, impl: str = "open3d") -> np.nda
         try:
             return core.core().voxel_downsample(pts, float(voxel))
         except ValueError as exc:
-            raise InputError(str(exc)) from None
+            raise InputError(f"{exc} (descriptor.impl=open3d has no such limit)") from None
     from fastmac_exp._open3d import o3d
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
