@@ -12,8 +12,9 @@ from typing import Any
 from urllib.parse import unquote, urlsplit, urlunsplit
 
 MASK = "***"
-# scheme://userinfo@ : the userinfo (user, or user:password) is what goes
-_USERINFO = re.compile(r"(?P<scheme>\b[A-Za-z][A-Za-z0-9+.-]*://)(?P<userinfo>[^/@\s'\"]+)@")
+# scheme://userinfo@ : the userinfo (user, or user:password) is what goes; Hydra writes overrides with
+# their colons escaped (http\://user\:pw@host)
+_USERINFO = re.compile(r"(?P<scheme>\b[A-Za-z][A-Za-z0-9+.-]*\\?://)(?P<userinfo>[^/@\s'\"]+)@")
 
 
 def split_credentials(uri: str) -> tuple[str, str | None, str | None]:

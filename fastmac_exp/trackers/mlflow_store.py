@@ -37,7 +37,7 @@ SUMMARY_KEYS = {"RR": "rr", "RE_deg": "re_deg", "TE_cm": "te_cm", "failed": "fai
                 "registered": "registered", "scored": "scored", "inlier_ratio_in": "inlier_ratio_in",
                 "inlier_ratio_kept": "inlier_ratio_kept"}  # fmt: skip
 # what a pair's or a run's logging may wait for: a few quick retries, not mlflow's ~4 minutes of backoff
-HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "0.5",
+HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
                  "MLFLOW_HTTP_REQUEST_TIMEOUT": "30"}  # fmt: skip
 
 
@@ -46,7 +46,7 @@ def client_class():
     try:
         from mlflow.tracking import MlflowClient
     except ImportError:
-        raise InputError(f"tracker=mlflow needs the mlflow extra, which is not installed: {INSTALL}") from None
+        raise InputError(f"tracker=mlflow needs the mlflow extra, not installed here: {INSTALL}") from None
     return MlflowClient
 
 
@@ -136,7 +136,8 @@ def experiment_name(cfg: dict[str, Any], choices: dict[str, Any] | None) -> str:
     """The dataset (with its family where that differs) and the study (+experiment=...), if any."""
     choices = choices or {}
     ds = cfg.get("dataset") or {}
-    dataset = str(choices.get("dataset") or ds.get("name") or str(ds.get("_target_", "run")).rsplit(".", 1)[-1])
+    target = str(ds.get("_target_", "run")).rsplit(".", 1)[-1]
+    dataset = str(choices.get("dataset") or ds.get("name") or target)
     family = ds.get("family")
     if family and str(family) != dataset:
         dataset = f"{dataset}-{family}"
@@ -188,8 +189,8 @@ def parent_run(client, sweep_dir: Path, exp_id: str, uri: str) -> str:
         found = existing_run(client, read_record(sweep_dir), uri)
         if found:
             return found
-        run = client.create_run(exp_id, run_name=sweep_dir.name,
-                                tags={"fastmac.kind": "sweep", "fastmac.sweep_dir": str(sweep_dir)})  # fmt: skip
+        tags = {"fastmac.kind": "sweep", "fastmac.sweep_dir": str(sweep_dir)}
+        run = client.create_run(exp_id, run_name=sweep_dir.name, tags=tags)
         write_record(sweep_dir, run_id=run.info.run_id, experiment_id=exp_id, tracking_uri=uri, kind="sweep")
         return run.info.run_id
 
@@ -223,7 +224,7 @@ def pair_metrics(row: dict[str, Any]) -> dict[str, float]:
     """One pair's metrics: success, failed, RE/TE, inlier ratios, kept ratio, clique, stage times."""
     out: dict[str, float | None] = {
         "pair/success": number(row.get("success")),
-        "pair/failed": float(bool(row.get("error"))),
+        "pair/failed": float(isinstance(row.get("error"), str) and bool(row.get("error"))),
     }
     for k in PAIR_KEYS:
         out[f"pair/{k}"] = number(row.get(k))
@@ -244,10 +245,15 @@ def summary_metrics(summary: dict[str, Any]) -> dict[str, float]:
 
 
 def log_metrics(client, run_id: str, metrics: dict[str, float], step: int = 0) -> None:
+    log_steps(client, run_id, {step: metrics})
+
+
+def log_steps(client, run_id: str, steps: dict[int, dict[str, float]]) -> None:
+    """{step: {key: value}} in batches of 1000 values."""
     from mlflow.entities import Metric
 
     stamp = int(time.time() * 1000)
-    batch = [Metric(k, v, stamp, step) for k, v in metrics.items()]
+    batch = [Metric(k, v, stamp, step) for step, metrics in steps.items() for k, v in metrics.items()]
     for i in range(0, len(batch), 1000):
         client.log_batch(run_id, metrics=batch[i : i + 1000], synchronous=True)
 

@@ -91,7 +91,7 @@ class MlflowTracker(Tracker):
             tags = {"fastmac.run_dir": str(run_dir), **self.tags}
             if self.parent_id:
                 tags[store.PARENT_TAG] = self.parent_id
-            name = self.run_name or ctx.get("override_dirname") or run_dir.name
+            name = self.run_name or (ctx.get("override_dirname") if sweep_dir else None) or run_dir.name
             run_id = client.create_run(exp_id, run_name=name, tags=tags).info.run_id
             store.write_record(run_dir, run_id=run_id, experiment_id=exp_id, tracking_uri=uri, kind="run",
                                parent_run_id=self.parent_id)  # fmt: skip
