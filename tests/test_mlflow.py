@@ -167,8 +167,9 @@ def server(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def caches(tmp_path_factory) -> list[str]:
-    root = tmp_path_factory.mktemp("caches")
-    return [f"cache.dir={root / 'corr'}", f"dataset.cache_dir={root / 'synthetic'}"]
+    """The module's own correspondence cache; the synthetic scans are the checkout's (.cache/synthetic), as
+    for the CLI's tests."""
+    return [f"cache.dir={tmp_path_factory.mktemp('caches') / 'corr'}"]
 
 
 def run_py(*args: str, env: dict[str, str] | None = None, timeout: int = 300) -> subprocess.CompletedProcess:
@@ -194,8 +195,8 @@ def sweep(server, caches, tmp_path_factory) -> tuple[Path, subprocess.CompletedP
     sweep_dir = tmp_path_factory.mktemp("sweep") / "sweep"
     uri = f"http://ana:{SECRET}@127.0.0.1:{server.port}"
     p = run_py("-m", *FAST, "sampler=highpass,random", "tracker=mlflow_and_rerun",
-               f"tracker.mlflow.uri={uri}", "tracker.mlflow.experiment=sweep-test", "tracker.rerun.max_pairs=1",
-               f"hydra.sweep.dir={sweep_dir}", *caches)  # fmt: skip
+               f"tracker.mlflow.uri={uri}", "tracker.mlflow.experiment=sweep-test",
+               "tracker.rerun.max_pairs=1", f"hydra.sweep.dir={sweep_dir}", *caches)  # fmt: skip
     assert p.returncode == 0, (p.stdout + p.stderr)[-4000:]
     return sweep_dir, p
 
