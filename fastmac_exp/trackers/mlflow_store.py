@@ -124,7 +124,9 @@ def experiment_id(client, name: str, uri: str) -> str:
     if exp is not None:
         return exp.experiment_id
     try:
-        return client.create_experiment(name, artifact_location=artifact_root(uri))
+        # the UI then opens on the runs table and charts (model training), not on GenAI traces
+        kind = {"mlflow.experimentKind": "custom_model_development"}
+        return client.create_experiment(name, artifact_location=artifact_root(uri), tags=kind)
     except Exception:  # noqa: BLE001 - another sweep member created it meanwhile
         exp = client.get_experiment_by_name(name)
         if exp is None:

@@ -91,7 +91,8 @@ class MlflowTracker(Tracker):
             tags = {"fastmac.run_dir": str(run_dir), **self.tags}
             if self.parent_id:
                 tags[store.PARENT_TAG] = self.parent_id
-            name = self.run_name or (ctx.get("override_dirname") if sweep_dir else None) or run_dir.name
+            name = self.run_name or (member_name(ctx.get("override_dirname")) if sweep_dir else None)
+            name = name or run_dir.name
             run_id = client.create_run(exp_id, run_name=name, tags=tags).info.run_id
             store.write_record(run_dir, run_id=run_id, experiment_id=exp_id, tracking_uri=uri, kind="run",
                                parent_run_id=self.parent_id)  # fmt: skip
@@ -140,6 +141,11 @@ class MlflowTracker(Tracker):
                 self.unlogged, self.unlogged + self.logged, self.clean_uri, self.lost, self.run_dir,
                 self.run_dir,
             )  # fmt: skip
+
+
+def member_name(override_dirname: str | None) -> str:
+    """A sweep member's run name: its overrides (ratio=0.1,sampler=random) less the tracker's own."""
+    return ",".join(o for o in (override_dirname or "").split(",") if o and not o.startswith("tracker"))
 
 
 def close_parent(sweep_dir: Path, uri: str | None, table_text: str | None = None) -> None:

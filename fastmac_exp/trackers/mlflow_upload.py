@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.trackers import mlflow_store as store
+from fastmac_exp.trackers.mlflow_tracker import member_name
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def upload_run(client, uri: str, run_dir: Path, parent: str | None) -> str:
     run_id = store.existing_run(client, store.read_record(run_dir), uri)
     if run_id is None:
         tags = {"fastmac.run_dir": str(run_dir), **({store.PARENT_TAG: parent} if parent else {})}
-        run_name = (hydra["override_dirname"] if parent else "") or run_dir.name
+        run_name = (member_name(hydra["override_dirname"]) if parent else "") or run_dir.name
         run_id = client.create_run(exp_id, run_name=run_name, tags=tags).info.run_id
         store.write_record(run_dir, run_id=run_id, experiment_id=exp_id, tracking_uri=uri, kind="run",
                            parent_run_id=parent)  # fmt: skip
