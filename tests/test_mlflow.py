@@ -272,6 +272,28 @@ def test_a_resumed_member_continues_its_own_run(server, sweep, caches):
     assert "config.resumed.yaml" in [a.path for a in c.list_artifacts(record["run_id"])]
 
 
+def test_report_sends_a_sweep_that_never_logged(server, caches, tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    p = run_py("-m", *FAST, "sampler=highpass,random", "tracker=none", f"hydra.sweep.dir={sweep_dir}",
+               *caches)  # fmt: skip
+    assert p.returncode == 0, (p.stdout + p.stderr)[-4000:]
+    env = {**os.environ, **THREADS, "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "fastmac_exp.report", str(sweep_dir), "--no-plots", "--snapshots", "0",
+           "--to-mlflow", "--mlflow-uri", server.url]  # fmt: skip
+    for _ in range(2):  # the second time sends nothing twice
+        p = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    c = client(server.url)
+    parent_id = json.loads((sweep_dir / "mlflow_run.json").read_text())["run_id"]
+    runs = runs_of(c, "synthetic-3dmatch")
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent_id]
+    assert len(children) == 2 and {r.data.params["sampler"] for r in children} == {"highpass", "random"}
+    for r in children:
+        assert sorted(m.step for m in c.get_metric_history(r.info.run_id, "pair/failed")) == [0, 1]
+        assert "rr" in r.data.metrics and r.info.status == "FINISHED"
+    assert "report" in [a.path for a in c.list_artifacts(parent_id)]
+
+
 def test_an_unreachable_server_stops_the_run_before_its_first_pair(caches, tmp_path):
     pytest.importorskip("mlflow")
     url = f"http://127.0.0.1:{_free_port()}"

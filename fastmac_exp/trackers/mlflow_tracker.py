@@ -23,12 +23,12 @@ stops sending, says at the end what was not logged, and `python -m fastmac_exp.r
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from fastmac_exp.errors import InputError
 from fastmac_exp.pipeline import PairOutcome
 from fastmac_exp.redact import redact_logs
 from fastmac_exp.trackers import mlflow_store as store
@@ -42,7 +42,8 @@ class MlflowTracker(Tracker):
     """Log a run to MLflow.
 
     uri: a tracking server (http(s)://host:port, user:password@ allowed: it is moved to the environment
-    and never written), or any store URI mlflow takes; null: SQLite in the run (sweep) directory.
+    and never written), or any store URI mlflow takes; null: MLFLOW_TRACKING_URI if set, else SQLite in
+    the run (sweep) directory.
     experiment: null: the dataset and the study (+experiment=...). name: null: the override dirname in a
     sweep, else the run directory's name. tags: extra run tags.
     """
@@ -77,7 +78,8 @@ class MlflowTracker(Tracker):
         self.run_dir = run_dir
         ctx = hydra_context()
         sweep_dir = Path(ctx["sweep_dir"]) if ctx.get("multirun") and ctx.get("sweep_dir") else None
-        uri = store.use_uri(self.uri) if self.uri else store.local_store(sweep_dir or run_dir)
+        uri = self.uri or os.environ.get("MLFLOW_TRACKING_URI")
+        uri = store.use_uri(uri) if uri else store.local_store(sweep_dir or run_dir)
         self.clean_uri = uri
         client = store.connect(uri)  # InputError (exit 2) before the first pair
         exp_name = self.experiment or store.experiment_name(cfg, ctx.get("choices"))
@@ -159,5 +161,5 @@ def close_parent(sweep_dir: Path, uri: str | None, table_text: str | None = None
         if table_text:
             client.log_text(record["run_id"], table_text, "sweep_summary.txt")
         client.set_terminated(record["run_id"], "FINISHED")
-    except (InputError, Exception) as exc:  # noqa: BLE001 - the sweep's results are on disk
+    except Exception as exc:  # noqa: BLE001 - the sweep's results are on disk (InputError included)
         log.warning("mlflow: could not close the sweep's parent run: %s", store.reason(exc))
