@@ -8,8 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
+from fastmac_exp.redact import redact_logs, redact_text
 from fastmac_exp.runlock import held_by
 from fastmac_exp.sweep_summary import sweep_table
 
@@ -47,3 +48,41 @@ class SweepSummary(Callback):
         sys.stdout.flush()
         sys.stdout.write(text)
         sys.stdout.flush()
+
+
+class RedactCredentials(Callback):
+    """A tracker URI's user:password (tracker.mlflow.uri=https://user:pw@host) stays off the console, the
+    logs and Hydra's copies of the config and the overrides (.hydra/*.yaml, a sweep's multirun.yaml)."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        redact_logs()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        redact_logs()
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        # Hydra has written them just before (hydra.core.utils.run_job)
+        out = Path(str(config.hydra.runtime.output_dir))
+        files = list((out / str(config.hydra.output_subdir or ".hydra")).glob("*.yaml"))
+        files.append(Path(str(config.hydra.sweep.dir)) / "multirun.yaml")
+        for path in files:
+            try:
+                text = path.read_text()
+            except OSError:
+                continue
+            clean = redact_text(text)
+            if clean != text:
+                path.write_text(clean)
+
+
+class CloseMlflowParent(Callback):
+    """A sweep logged to MLflow ends with its parent run finished, the members' table attached."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        if not (sweep_dir / "mlflow_run.json").is_file():
+            return
+        from fastmac_exp.trackers.mlflow_tracker import close_parent
+
+        uri = OmegaConf.select(config, "tracker.mlflow.uri", default=None)
+        close_parent(sweep_dir, uri, sweep_table(sweep_dir))

@@ -24,6 +24,7 @@ from fastmac_exp.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.errors import InputError
 from fastmac_exp.metrics import summarize
 from fastmac_exp.pipeline import PairOutcome, run_pair
+from fastmac_exp.redact import redact
 from fastmac_exp.resources import find_file
 from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
 from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
@@ -214,7 +215,7 @@ def _run_locked(
         log.warning("descriptor=%s: %s", comp.labels["descriptor"], comp.descriptor.cost_note)
 
     trackers = _make_trackers(cfg)
-    plain_cfg = OmegaConf.to_container(cfg, resolve=True)
+    plain_cfg = redact(OmegaConf.to_container(cfg, resolve=True))  # no tracker URI's password in any log
     for t in trackers:
         t.start(plain_cfg, run_dir, names)
 
@@ -307,7 +308,7 @@ def _save_config(cfg: DictConfig, run_dir: Path) -> None:
     path = run_dir / CONFIG_NAME
     if cfg.get("resume") and path.exists():
         path = run_dir / RESUMED_NAME
-    OmegaConf.save(cfg, path, resolve=False)
+    OmegaConf.save(OmegaConf.create(redact(OmegaConf.to_container(cfg, resolve=False))), path)
 
 
 def _make_trackers(cfg: DictConfig) -> list:
@@ -323,6 +324,8 @@ def _make_trackers(cfg: DictConfig) -> list:
         try:
             trackers.append(instantiate(kwargs))
         except Exception as exc:  # noqa: BLE001 - e.g. an optional package missing
+            if isinstance(exc.__cause__ or exc, InputError):  # chosen explicitly and unusable: say so, stop
+                raise
             log.warning("tracker %s disabled: %s", key, exc)
     return trackers
 
