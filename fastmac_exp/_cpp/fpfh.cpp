@@ -387,39 +387,53 @@ void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double 
 std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads) {
     if (!(voxel > 0)) throw std::invalid_argument("voxel_downsample: voxel must be positive");
     if (n == 0) return {};
-    double lo[3];
+    double lo[3], hi[3];
     cloud_min(points, n, lo);
-    for (int d = 0; d < 3; ++d) lo[d] -= voxel * 0.5;
+    for (int d = 0; d < 3; ++d) {
+        lo[d] -= voxel * 0.5;
+        hi[d] = lo[d];
+    }
+    for (int64_t i = 0; i < n; ++i)
+        for (int d = 0; d < 3; ++d) hi[d] = std::max(hi[d], points[3 * i + d]);
+    // voxel indices as one dense integer (as few radix passes as the grid needs); the output order comes
+    // after, on the occupied voxels only
+    uint64_t extent[3];
+    for (int d = 0; d < 3; ++d) {
+        const double f = std::floor((hi[d] - lo[d]) / voxel);
+        if (!(f <= double(kAxisMax)))
+            throw std::invalid_argument("voxel_downsample: the cloud spans more than 2^21 voxels along an axis");
+        extent[d] = uint64_t(f) + 1;
+    }
     std::vector<std::pair<uint64_t, int64_t>> keyed(n);
     nthreads = resolve_threads(nthreads, n);
-    std::atomic<bool> too_wide{false};
     parallel_for(0, n, nthreads, 8192, [&](int64_t i, int) {
-        int64_t c[3];
+        uint64_t c[3];
         for (int d = 0; d < 3; ++d) {
             const double f = std::floor((points[3 * i + d] - lo[d]) / voxel);
-            if (!(f <= double(kAxisMax))) {
-                too_wide = true;
-                c[d] = 0;
-            } else {
-                c[d] = int64_t(f);
-            }
+            c[d] = std::min(uint64_t(f), extent[d] - 1);
         }
-        keyed[i] = {grid::scramble(pack(c[0], c[1], c[2])), i};
+        keyed[i] = {(c[0] * extent[1] + c[1]) * extent[2] + c[2], i};
     });
-    if (too_wide)
-        throw std::invalid_argument("voxel_downsample: the cloud spans more than 2^21 voxels along an axis");
     sort_keyed(keyed);
-    std::vector<double> out;
-    out.reserve(3 * std::min<int64_t>(n, 1 << 20));
+    // centroids (sums in input order), each with its voxel's scrambled key for the output order
+    std::vector<std::pair<uint64_t, int64_t>> order;
+    std::vector<double> centre;
     for (int64_t s = 0; s < n;) {
         int64_t e = s + 1;
         while (e < n && keyed[e].first == keyed[s].first) ++e;
         double acc[3] = {0, 0, 0};
         for (int64_t k = s; k < e; ++k)
             for (int d = 0; d < 3; ++d) acc[d] += points[3 * keyed[k].second + d];
-        for (int d = 0; d < 3; ++d) out.push_back(acc[d] / double(e - s));
+        for (int d = 0; d < 3; ++d) centre.push_back(acc[d] / double(e - s));
+        const uint64_t key = keyed[s].first;
+        const uint64_t z = key % extent[2], y = (key / extent[2]) % extent[1], x = key / extent[2] / extent[1];
+        order.push_back({grid::scramble(pack(int64_t(x), int64_t(y), int64_t(z))), int64_t(order.size())});
         s = e;
     }
+    std::sort(order.begin(), order.end());
+    std::vector<double> out(centre.size());
+    for (size_t k = 0; k < order.size(); ++k)
+        std::copy_n(&centre[3 * order[k].second], 3, &out[3 * k]);
     return out;
 }
 
