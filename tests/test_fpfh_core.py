@@ -346,3 +346,17 @@ def test_mesh_resolution_rejects_bad_clouds():
 def test_nearest_other_distances_rejects_non_finite_points():
     with pytest.raises(ValueError, match="not finite"):
         core.core().nearest_other_distances(np.array([[0.0, 0, 0], [np.nan, 0, 0], [1, 1, 1]]))
+
+
+def test_voxel_keypoints_drop_non_finite_rows():
+    pts = scan(12)
+    bad = pts.copy()
+    bad[::7] = np.nan
+    bad[3, 1] = np.inf
+    keep = np.isfinite(bad).all(axis=1)
+    np.testing.assert_array_equal(
+        core.core().voxel_downsample(bad, 0.05), core.core().voxel_downsample(pts[keep], 0.05)
+    )
+    kp, _ = fpfh_features(bad, 0.05, impl="core")
+    ref, _ = fpfh_features(pts[keep], 0.05, impl="open3d")
+    np.testing.assert_array_equal(kp[np.lexsort(kp.T)], ref[np.lexsort(ref.T)])

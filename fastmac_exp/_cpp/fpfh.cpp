@@ -386,15 +386,19 @@ void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double 
 
 std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads) {
     if (!(voxel > 0)) throw std::invalid_argument("voxel_downsample: voxel must be positive");
-    if (n == 0) return {};
-    double lo[3], hi[3];
-    cloud_min(points, n, lo);
-    for (int d = 0; d < 3; ++d) {
-        lo[d] -= voxel * 0.5;
-        hi[d] = lo[d];
+    // the finite points (a row with a NaN or an infinity is dropped, as the Python front ends do)
+    std::vector<int64_t> finite;
+    finite.reserve(n);
+    double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (int64_t i = 0; i < n; ++i) {
+        const double *q = points + 3 * i;
+        if (!(std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]))) continue;
+        finite.push_back(i);
+        for (int d = 0; d < 3; ++d) lo[d] = std::min(lo[d], q[d]), hi[d] = std::max(hi[d], q[d]);
     }
-    for (int64_t i = 0; i < n; ++i)
-        for (int d = 0; d < 3; ++d) hi[d] = std::max(hi[d], points[3 * i + d]);
+    n = int64_t(finite.size());
+    if (n == 0) return {};
+    for (int d = 0; d < 3; ++d) lo[d] -= voxel * 0.5;
     // voxel indices as one dense integer (as few radix passes as the grid needs); the output order comes
     // after, on the occupied voxels only
     uint64_t extent[3];
@@ -406,13 +410,14 @@ std::vector<double> voxel_downsample(const double *points, int64_t n, double vox
     }
     std::vector<std::pair<uint64_t, int64_t>> keyed(n);
     nthreads = resolve_threads(nthreads, n);
-    parallel_for(0, n, nthreads, 8192, [&](int64_t i, int) {
+    parallel_for(0, n, nthreads, 8192, [&](int64_t k, int) {
+        const int64_t i = finite[k];
         uint64_t c[3];
         for (int d = 0; d < 3; ++d) {
             const double f = std::floor((points[3 * i + d] - lo[d]) / voxel);
             c[d] = std::min(uint64_t(f), extent[d] - 1);
         }
-        keyed[i] = {(c[0] * extent[1] + c[1]) * extent[2] + c[2], i};
+        keyed[k] = {(c[0] * extent[1] + c[1]) * extent[2] + c[2], i};
     });
     sort_keyed(keyed);
     // centroids (sums in input order), each with its voxel's scrambled key for the output order

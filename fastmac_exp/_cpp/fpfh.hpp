@@ -9,7 +9,8 @@
 
 namespace fastmac {
 
-// Open3D's voxel_down_sample: the centroid of the points of every occupied voxel of the grid anchored at
+// Open3D's voxel_down_sample of the finite points: the centroid of the points of every occupied voxel of the
+// grid anchored at
 // min(points) - voxel / 2 (sums in input order, as Open3D). Keypoints are ordered by a scrambled voxel key
 // (grid::scramble): deterministic, and like Open3D's hash-map order without spatial runs, so that no prefix
 // or tie-break downstream sees one corner of the scene first. Throws std::invalid_argument when the cloud spans more
