@@ -136,7 +136,14 @@ def register(
     sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, graph_overrides, mac_overrides).graph
     try:
         result, _ = register_correspondences(
-            corr, params, sampler_obj, backend_obj, ratio, family, rng, sample_graph=sample_graph,
+            corr,
+            params,
+            sampler_obj,
+            backend_obj,
+            ratio,
+            family,
+            rng,
+            sample_graph=sample_graph,
             samples=samples,
         )
     except RegistrationFailed as exc:  # a result flagged as failed, not an exception to catch

@@ -29,6 +29,7 @@ from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
 from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
 from fastmac_exp.runlock import RunLock
+from fastmac_exp.trust import TRUST_LEVEL
 
 log = logging.getLogger(__name__)
 
@@ -230,6 +231,9 @@ def _run_locked(
     def consume(out: PairOutcome) -> None:
         nonlocal n_ok, n_done, t_sum
         results.append(out.row)
+        if out.row.get("trusted") is False and not out.row.get("error"):
+            with bar.external_write_mode():  # a line of its own, not glued to the progress bar
+                log.warning("%s", untrusted_line(out.row))
         if out.row.get("success") is None and not out.row.get("error") and out.row.get("pose"):
             write_pose(run_dir, out.row)  # no GT: the estimate is the result
         for t in trackers:
@@ -275,6 +279,7 @@ def _run_locked(
         summary = summarize(table)
         summary["failures"] = failure_reasons(table)
         summary["unscored_pairs"] = unscored_pairs(table, run_dir)
+        summary["untrusted_pairs"] = untrusted_pairs(table)
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
@@ -347,9 +352,28 @@ def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[
     return [
         {"pair": str(r["pair"]), "pose": pose_matrix(r["pose"]).tolist(),
          "pose_file": str(pose_file(run_dir, str(r["pair"]))), "clique_size": _int(r.get("clique_size")),
-         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in"))}
+         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in")),
+         "trusted": None if pd.isna(r.get("trusted", np.nan)) else bool(r.get("trusted")),
+         "confidence": None if pd.isna(r.get("confidence", np.nan)) else float(r.get("confidence"))}
         for _, r in rows.head(most).iterrows()
     ]  # fmt: skip
+
+
+def untrusted_line(row: dict[str, Any]) -> str:
+    return (
+        f"UNTRUSTED POSE for {row.get('pair')}: it explains {row.get('pose_inliers')} of {row.get('n_in')} "
+        f"correspondences, no more than chance would (confidence {float(row.get('confidence') or 0):.3f} < "
+        f"{TRUST_LEVEL}; docs/trust.md): do not use it"
+    )
+
+
+def untrusted_pairs(table: pd.DataFrame) -> list[str]:
+    """The pairs whose pose the GT-free check does not trust (fastmac_exp.trust), failed pairs aside."""
+    if "trusted" not in table or not len(table):
+        return []
+    errors = table["error"].fillna("").astype(str).ne("") if "error" in table else False
+    untrusted = table["trusted"].astype("boolean").eq(False).fillna(False) & ~errors
+    return [str(p) for p in table.loc[untrusted, "pair"]]
 
 
 def _config_family(cfg: DictConfig) -> list[str]:
@@ -393,6 +417,7 @@ def format_summary(summary: dict[str, Any]) -> str:
             + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
             + ([f"no ground truth (not scored): {unscored}"] if unscored else [])
             + [f"failed with an error: {s.get('failed', 0)}"]
+            + ([f"UNTRUSTED poses: {len(s['untrusted_pairs'])}"] if s.get("untrusted_pairs") else [])
         ),
         f"{rr}   RE: {s.get('RE_deg', nan):.2f} deg   TE: {s.get('TE_cm', nan):.2f} cm   "
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
@@ -400,12 +425,25 @@ def format_summary(summary: dict[str, Any]) -> str:
         + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
     for u in (s.get("unscored_pairs") or [])[:3]:
+        untrusted = (
+            f"UNTRUSTED POSE (confidence {u['confidence']:.3f}: no more correspondences than chance; "
+            "do not use it); "
+            if u.get("trusted") is False
+            else ""
+        )
         lines.append(
-            f"{u['pair']}: no ground truth: not scored; clique of {u['clique_size']}, {u['pose_inliers']} of "
+            f"{u['pair']}: no ground truth: not scored; {untrusted}clique of {u['clique_size']}, "
+            f"{u['pose_inliers']} of "
             f"{u['n_in']} correspondences within the inlier threshold; estimated pose (source -> target, "
             f"{u['pose_file']}):"
         )
         lines += ["  " + " ".join(f"{v:12.6f}" for v in row) for row in u["pose"]]
+    bad = s.get("untrusted_pairs") or []
+    if bad:
+        lines.append(
+            f"WARNING: {len(bad)} UNTRUSTED pose(s), no more correspondences than chance would explain "
+            f"(docs/trust.md): {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}"
+        )
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
         lines.append(f"failed x{info['count']}: {reason} ({pairs})")

@@ -79,9 +79,10 @@ def apply_options(cfg: DictConfig, options: dict[str, Any], groups: tuple[str, .
     missing = object()
     for name, value in options.items():
         if "." in name:
-            if name.split(".")[0] not in (*groups, *TABLES) or OmegaConf.select(
-                cfg, name, default=missing
-            ) is missing:
+            if (
+                name.split(".")[0] not in (*groups, *TABLES)
+                or OmegaConf.select(cfg, name, default=missing) is missing
+            ):
                 raise InputError(f"register(): unknown option {name!r}{_did_you_mean(name, names)}")
             path = name
         else:

@@ -23,6 +23,7 @@ from fastmac_exp.offset import common_offset, describe_moved, moved_pair, to_ori
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.row import PairRow
 from fastmac_exp.samplers import Sampler, SampleResult
+from fastmac_exp.trust import assess
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
@@ -103,6 +104,8 @@ def run_pair(
         clique_size=len(result.clique),
         clique_inliers=int(corr.labels[result.clique].sum()) if corr.labels is not None else None,
         pose_inliers=result.inliers,
+        trusted=result.trusted,
+        confidence=result.confidence,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -180,6 +183,11 @@ def register_correspondences(
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
     result.inliers = pose_inliers(work, result.pose, params.inlier_threshold)
+    verdict = assess(
+        work.src, work.tgt, result.pose, params.inlier_threshold, result.inliers, len(result.clique)
+    )
+    result.trusted, result.confidence = verdict.trusted, verdict.confidence
+    result.chance_inliers = verdict.chance_inliers
     if offset.any():
         result.pose = to_original(result.pose, offset)
         result.pose_unrefined = to_original(result.pose_unrefined, offset)

@@ -55,6 +55,8 @@ class PairRow:
     clique_size: Any = UNSET
     clique_inliers: Any = UNSET
     pose_inliers: Any = UNSET  # correspondences within the inlier threshold under the pose: a confidence
+    trusted: Any = UNSET  # GT-free: the pose explains more correspondences than chance (fastmac_exp.trust)
+    confidence: Any = UNSET  # ... 1 - its false-accept chance, what `trusted` thresholds
     score: Any = UNSET
     n_edges: Any = UNSET
     n_cliques: Any = UNSET

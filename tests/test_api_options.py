@@ -73,3 +73,28 @@ def test_every_group_option_is_documented_in_the_docstring():
     for key in OmegaConf.to_container(compose_run({}).mac):
         assert key in doc
     assert sorted(choices("backend")) == sorted(p.stem for p in (config_dir() / "backend").glob("*.yaml"))
+
+
+def test_a_right_pose_is_trusted_and_one_of_unrelated_clouds_is_not():
+    """Issue 42 item 2: the GT-free check (fastmac_exp.trust) on correspondences with 10 % inliers and on
+    two unrelated random clouds (a pose with about its clique's support)."""
+    good, gt = make_correspondences(n=1000, inlier_ratio=0.1, seed=1)
+    res = fastmac_exp.register(good, ratio=0.2)
+    assert res.trusted and res.confidence > 0.999 and np.allclose(res.pose, gt, atol=0.05)
+    rng = np.random.default_rng(0)
+    unrelated = fastmac_exp.register(rng.uniform(0, 3, (20000, 3)), rng.uniform(0, 3, (20000, 3)))
+    assert unrelated.ok and not unrelated.trusted and unrelated.confidence < 0.5
+
+
+def test_a_pose_that_explains_only_its_clique_is_not_trusted():
+    from fastmac_exp.trust import assess
+
+    rng = np.random.default_rng(0)
+    src = rng.uniform(0, 10, (2000, 3))
+    tgt = rng.uniform(0, 10, (2000, 3))
+    # a clique of 8 and 4 more within the threshold: chance's share
+    assert not assess(src, tgt, np.eye(4), 0.1, inliers=12, clique=8).trusted
+    # 300 of 2000 explained: 15 %, far beyond what chance and structure give
+    verdict = assess(src, tgt, np.eye(4), 0.1, inliers=300, clique=8)
+    assert verdict.trusted and verdict.confidence > 0.999
+    assert not assess(src, tgt, np.full((4, 4), np.nan), 0.1, inliers=300, clique=8).trusted
