@@ -18,12 +18,15 @@ import math
 import sys
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 from fastmac_exp.metrics import STAGES, cached_rows
 from fastmac_exp.results import LOG_NAME, load_table, read_rows, to_table
+from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, differences
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +77,53 @@ def load_results(root: str | Path, exclude: Iterable[Path] = ()) -> pd.DataFrame
         if len(t):
             t = t.copy()
             t.insert(0, "run", str(run_dir.relative_to(root)) if run_dir != root else ".")
-            tables.append(t)
+            tables.append((run_dir, t))
     if not tables:
         return pd.DataFrame()
-    return pd.concat(tables, ignore_index=True)
+    return pd.concat(merge_same_experiments(tables), ignore_index=True)
+
+
+def _saved_config(run_dir: Path):
+    for name in (RESUMED_NAME, CONFIG_NAME):
+        if (run_dir / name).is_file():
+            try:
+                cfg = OmegaConf.load(run_dir / name)
+            except Exception:  # noqa: BLE001 - no config to compare: the run stands alone
+                return None
+            cfg.pop("limit", None)  # a resume may raise it: runs that differ only there are one experiment
+            return cfg
+    return None
+
+
+def merge_same_experiments(tables: list[tuple[Path, pd.DataFrame]]) -> list[pd.DataFrame]:
+    """Runs of one configuration (e.g. two sweep members, one started again with a higher limit) hold the
+    same measurement of their common pairs: each pair is counted once (from the run holding the most
+    rows), with a warning naming the runs, instead of twice."""
+    classes: list[tuple[Any, list[tuple[Path, pd.DataFrame]]]] = []
+    for run_dir, t in tables:
+        cfg = _saved_config(run_dir)
+        for saved, members in classes:
+            if cfg is not None and saved is not None and not differences(saved, cfg):
+                members.append((run_dir, t))
+                break
+        else:
+            classes.append((cfg, [(run_dir, t)]))
+    out = []
+    for _, members in classes:
+        if len(members) == 1:
+            out.append(members[0][1])
+            continue
+        members.sort(key=lambda m: -len(m[1]))
+        merged = pd.concat([t for _, t in members], ignore_index=True)
+        keys = [k for k in ("pair", "seed") if k in merged]
+        dup = merged.duplicated(keys, keep="first")
+        log.warning(
+            "%s hold one configuration (only limit differs): %d repeated pair(s) counted once",
+            ", ".join(str(m[0]) for m in members),
+            int(dup.sum()),
+        )
+        out.append(merged[~dup])
+    return out
 
 
 # -- aggregation ------------------------------------------------------------------------------------------
