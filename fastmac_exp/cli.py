@@ -4,6 +4,7 @@ missing launcher plugin or a mistyped key into a message that says what to do.""
 
 from __future__ import annotations
 
+import difflib
 import logging
 import shutil
 import signal
@@ -169,7 +170,6 @@ def check_keys(argv: list[str]) -> str | None:
     added = [k for k in added if not (config_dir() / k.replace(".", "/")).is_dir()]  # +group=option
     if not assigned:
         return None
-    import difflib
     import re
 
     from hydra import compose, initialize_config_dir
@@ -191,11 +191,20 @@ def check_keys(argv: list[str]) -> str | None:
     key = None
     try:
         composed(overrides)
-    except Exception as exc:  # noqa: BLE001 - anything but a missing key is left to Hydra's own report
+    except Exception as exc:  # noqa: BLE001 - anything but a missing key or option is left to Hydra's report
+        missing_option = re.search(r"Could not find '([^'/]+)/([^']+)'", str(exc))
+        if missing_option:
+            return unknown_option(*missing_option.groups())
         m = re.search(r"Could not override '([^']+)'", str(exc))
         if not m:
             return None
         key = m.group(1)
+    group_value = next((o for o in overrides if base(o) == key and not o.startswith("+")), None)
+    if key and group_value and (config_dir() / key).is_dir():  # a group outside the defaults list
+        return (
+            f"{key} is a config group that the defaults do not include: add it with a +, "
+            f"+{group_value} (python run.py --help lists the groups)"
+        )
     if key == "dataset.limit":
         n = key_value(overrides, key)
         return f"dataset.limit is a run key: write limit={n} (the first N pairs of any dataset)"
@@ -221,6 +230,17 @@ def check_keys(argv: list[str]) -> str | None:
     close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]!r}?" if close else ""
     return f"unknown config key {key!r}{hint} (python run.py --cfg job shows every key)"
+
+
+def unknown_option(group: str, option: str) -> str:
+    """One line for GROUP=OPTION with no conf/GROUP/OPTION.yaml (Hydra's lists every option on its own
+    line, below its search path)."""
+    from fastmac_exp.options import choices
+
+    known = choices(group)
+    close = [k for k in known if k.startswith(option)] or difflib.get_close_matches(option, known, n=1)
+    hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    return f"unknown {group} {option!r}{hint} (choose one of {', '.join(known)})"
 
 
 def check_output_dir(argv: list[str]) -> str | None:

@@ -337,3 +337,19 @@ def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path
             tmp=tmp_path / "again")  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]
     assert "pairs: 1  registered: 1 of 1  failed with an error: 0" in p.stdout
+
+
+def test_group_mistakes_get_one_line_and_exit_2(tmp_path):
+    """Issue 42 item 5: a group outside the defaults without its +, an unknown option of a group."""
+    cases = {
+        "method=mac": "method is a config group that the defaults do not include: add it with a +, +method=mac",
+        "sampler=nosuch": "unknown sampler 'nosuch' (choose one of allpass, deterministic, fps, highpass,",
+        "+method=fastmac": "unknown method 'fastmac'; did you mean 'fastmac20' or 'fastmac20_turboreg' or "
+        "'fastmac50'? (choose one of ",
+    }
+    for override, message in cases.items():
+        p = run(override, tmp=tmp_path)
+        out = (p.stdout + p.stderr).strip()
+        assert p.returncode == 2, (override, out[-2000:])
+        assert len(out.splitlines()) == 1 and out.startswith(message), (override, out)
+        assert not (tmp_path / "run").exists()
