@@ -274,6 +274,10 @@ def _own_error(exc: BaseException) -> FastMacError | None:
 def run() -> None:
     """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
     hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
+    if not hint and {"-m", "--multirun"} & set(sys.argv[1:]):
+        from fastmac_exp.sweep_check import check_members
+
+        hint = check_members(sys.argv[1:])
     if hint:
         log.addHandler(logging.StreamHandler())
         log.error(hint)

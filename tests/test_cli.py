@@ -353,3 +353,15 @@ def test_group_mistakes_get_one_line_and_exit_2(tmp_path):
         assert p.returncode == 2, (override, out[-2000:])
         assert len(out.splitlines()) == 1 and out.startswith(message), (override, out)
         assert not (tmp_path / "run").exists()
+
+
+def test_every_sweep_member_is_checked_before_the_first_starts(tmp_path):
+    """Issue 42 item 7: member 1's ratio is refused before member 0 runs: one line, exit 2, no directory."""
+    p = sweep("ratio=0.2,1.5", "limit=1", sweep_dir=tmp_path / "S")
+    out = (p.stdout + p.stderr).strip()
+    assert p.returncode == 2, out[-2000:]
+    assert out == (
+        "sweep member 1 (ratio=1.5): ratio must be a number in (0, 1], got 1.5 (config key: ratio); "
+        "no member was started"
+    )
+    assert not (tmp_path / "S").exists()
