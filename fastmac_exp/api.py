@@ -10,6 +10,7 @@ from omegaconf import OmegaConf
 
 from fastmac_exp.backends.base import Backend
 from fastmac_exp.descriptors.base import Descriptor
+from fastmac_exp.checks import check_devices
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
@@ -88,6 +89,7 @@ def register(
     cfg = compose_run(picks)
     cfg.seed = int(seed)
     apply_options(cfg, options, tuple(picks))
+    check_devices(cfg)
     rng = np.random.default_rng(seed)
     sampler_obj = instantiate_part(cfg.sampler) if isinstance(sampler, str) else sampler
     backend_obj = instantiate_part(cfg.backend) if isinstance(backend, str) else backend

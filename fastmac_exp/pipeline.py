@@ -96,6 +96,7 @@ def run_pair(
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
         row.set(scores=sample.scores_used, anchors=sample.anchors)
+    row.set(engine=sampler_engine(sampler, sample))
     row.set(
         samples=samples,
         ratio=sample.ratio,
@@ -124,6 +125,25 @@ def run_pair(
     row.timings = {"describe": describe_ms, **result.timings}
     row.pose = " ".join(f"{v:.17g}" for v in result.pose.ravel())  # exact: georeferenced poses are ~1e6
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
+
+
+def sampler_engine(sampler: Sampler, sample: SampleResult) -> str:
+    """Which engine computed the sampler's graph signals (fastmac_exp.graph.signals.compute_signals'
+    choice): cpp, torch:<device> or python; "" for samplers without a graph."""
+    impl = getattr(sampler, "impl", None)
+    if impl is None or sample.scores is None and not sample.scores_used:
+        return ""
+    device = str(getattr(sampler, "device", "cpu"))
+    if sample.scores_used == "estimate":
+        return "cpp"
+    if impl in ("auto", "cpp"):
+        from fastmac_exp import core
+
+        if impl == "cpp" or core.available():
+            return "cpp"
+    if impl == "torch" or device != "cpu":
+        return f"torch:{device}"
+    return "python"
 
 
 def pose_inliers(corr: Correspondences, pose: np.ndarray, threshold: float) -> int:

@@ -50,6 +50,7 @@ class PairRow:
     samples: Any = UNSET  # the sample size asked for as a count (`samples=K`; ratio is then k / N)
     scores: Any = UNSET  # graph-filter samplers: "exact" or "estimate" (what sampler.scores=auto chose)
     anchors: Any = UNSET  # the estimate's anchors (0 for exact scores)
+    engine: Any = UNSET  # what computed the sampler's graph signals: cpp, torch:<device> or python
     n_kept: Any = UNSET
     inlier_ratio_kept: Any = UNSET
     clique_size: Any = UNSET

@@ -365,3 +365,33 @@ def test_every_sweep_member_is_checked_before_the_first_starts(tmp_path):
         "no member was started"
     )
     assert not (tmp_path / "S").exists()
+
+
+def test_devices_and_providers_are_checked_before_anything_is_created(tmp_path):
+    """Issue 42 item 4: a GPU this machine lacks, a device name torch does not know, a provider onnxruntime
+    does not know: one line, exit 2, no run directory."""
+    import torch
+
+    cases = {
+        "sampler.device=gpu": "sampler.device must be cpu or cuda (cuda:N for the N-th GPU), got 'gpu'",
+        "descriptor.execution_providers=[cdua,cpu]": "descriptor.execution_providers: unknown provider 'cdua'",
+    }
+    if not torch.cuda.is_available():
+        cases["sampler.device=cuda"] = "sampler.device=cuda, but torch"
+    else:
+        cases["sampler.device=cuda"] = "sampler.device=cuda is the torch engine's: add sampler.impl=torch"
+    for override, message in cases.items():
+        extra = ("descriptor=fcgf_lite",) if "execution_providers" in override else ()
+        p = run(*extra, override, tmp=tmp_path)
+        out = (p.stdout + p.stderr).strip()
+        assert p.returncode == 2 and message in out, (override, out[-2000:])
+        assert len(out.splitlines()) == 1, out
+        assert not (tmp_path / "run").exists()
+
+
+def test_the_row_says_which_engine_computed_the_samplers_signals(tmp_path):
+    import pandas as pd
+
+    p = run("limit=1", "sampler.impl=torch", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert pd.read_csv(tmp_path / "run" / "results.csv")["engine"].tolist() == ["torch:cpu"]
