@@ -9,8 +9,8 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from fastmac_exp.backends.base import Backend
-from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.checks import check_devices
+from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
