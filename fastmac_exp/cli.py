@@ -125,6 +125,8 @@ def main(cfg: DictConfig) -> float:
     except KeyboardInterrupt as exc:
         if not getattr(exc, "saved", False):
             log.warning("interrupted before the run started: nothing was written")
+        elif getattr(exc, "run_dir", None):
+            log.warning("continue it with:\n  %s", continue_command(exc.run_dir, single, hydra_cfg))
         if single:
             drop_if_empty(run_dir)
         sys.exit(130)
@@ -154,6 +156,33 @@ def main(cfg: DictConfig) -> float:
         if single:
             sys.exit(1)
     return float(summary.get("RR", 0.0))
+
+
+def program() -> str:
+    """How this app was started, as a user would type it again."""
+    argv0 = sys.argv[0]
+    if Path(argv0).name == "run.py":
+        return f"python {argv0}"
+    if Path(argv0).name == "__main__.py" and Path(argv0).parent.name == "fastmac_exp":
+        return "python -m fastmac_exp"
+    return Path(argv0).name
+
+
+def continue_command(run_dir: str, single: bool, hydra_cfg) -> str:
+    """The command that continues an interrupted run (its own overrides and resume=DIR) or sweep (its
+    command line with resume=auto into the same sweep directory)."""
+    import shlex
+
+    def not_resume(o: str) -> bool:
+        return o.lstrip("+~").split("=", 1)[0] != "resume"
+
+    if single:
+        args = [o for o in hydra_cfg.overrides.task if not_resume(o)] + [f"resume={run_dir}"]
+    else:
+        args = [o for o in sys.argv[1:] if not_resume(o)] + ["resume=auto"]
+        if not any(o.startswith("hydra.sweep.dir=") for o in args):
+            args.append(f"hydra.sweep.dir={hydra_cfg.sweep.dir}")
+    return " ".join([program(), *(shlex.quote(a) for a in args)])
 
 
 def key_value(overrides: list[str], key: str) -> str:

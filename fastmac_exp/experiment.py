@@ -263,17 +263,15 @@ def _run_locked(
             pool.shutdown()
     except KeyboardInterrupt:
         interrupted = True
-        if results.rows:
-            log.warning(
-                "interrupted: %d pairs are saved in %s; rerun with resume=%s",
-                len(results.rows),
-                run_dir,
-                run_dir,
-            )
-        else:
-            log.warning("interrupted before the first pair finished: nothing to resume")
     finally:
         bar.close()
+        if interrupted:  # after the bar is closed: a line of its own
+            n = len(results.rows)
+            if n:
+                saved = "1 pair is" if n == 1 else f"{n} pairs are"
+                log.warning("interrupted: %s saved in %s", saved, run_dir)
+            else:
+                log.warning("interrupted before the first pair finished: nothing to resume")
         keep = bool(results.rows) or not interrupted  # an interrupted start-up leaves no tables of nothing
         table = results.write_tables() if keep else results.table()
         summary = summarize(table)
@@ -304,6 +302,7 @@ def _run_locked(
     if interrupted:
         exc = KeyboardInterrupt("run interrupted; its finished pairs are saved")
         exc.saved = True  # type: ignore[attr-defined] - the console has said what was saved
+        exc.run_dir = str(run_dir)  # type: ignore[attr-defined] - where a resume continues it
         raise exc
     return table, summary
 
