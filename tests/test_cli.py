@@ -342,7 +342,8 @@ def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path
 def test_group_mistakes_get_one_line_and_exit_2(tmp_path):
     """Issue 42 item 5: a group outside the defaults without its +, an unknown option of a group."""
     cases = {
-        "method=mac": "method is a config group that the defaults do not include: add it with a +, +method=mac",
+        "method=mac": "method is a config group that the defaults do not include: add it with a +, "
+        "+method=mac",
         "sampler=nosuch": "unknown sampler 'nosuch' (choose one of allpass, deterministic, fps, highpass,",
         "+method=fastmac": "unknown method 'fastmac'; did you mean 'fastmac20' or 'fastmac20_turboreg' or "
         "'fastmac50'? (choose one of ",
@@ -374,7 +375,9 @@ def test_devices_and_providers_are_checked_before_anything_is_created(tmp_path):
 
     cases = {
         "sampler.device=gpu": "sampler.device must be cpu or cuda (cuda:N for the N-th GPU), got 'gpu'",
-        "descriptor.execution_providers=[cdua,cpu]": "descriptor.execution_providers: unknown provider 'cdua'",
+        "descriptor.execution_providers=[cdua,cpu]": (
+            "descriptor.execution_providers: unknown provider 'cdua'"
+        ),
     }
     if not torch.cuda.is_available():
         cases["sampler.device=cuda"] = "sampler.device=cuda, but torch"

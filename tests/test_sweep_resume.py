@@ -30,8 +30,11 @@ def test_a_sweep_resumed_with_a_higher_limit_continues_its_members(tmp_path):
     assert members == ["0_ratio=0.5", "1_ratio=0.2"], members
     for m in members:
         assert len((s / m / "results.jsonl").read_text().splitlines()) == 2
-    report = subprocess.run([sys.executable, "-m", "fastmac_exp.report", str(s), "--no-plots"], cwd=REPO,
-                            env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    report = subprocess.run(
+        [sys.executable, "-m", "fastmac_exp.report", str(s), "--no-plots"], cwd=REPO, env=env,
+        capture_output=True, text=True,
+    )  # fmt: skip
     assert report.returncode == 0, report.stderr[-2000:]
     agg = pd.read_csv(s / "report" / "report.csv")
     assert agg["pairs"].tolist() == [2, 2]
