@@ -220,9 +220,23 @@ def _run_locked(
         t.start(plain_cfg, run_dir, names)
 
     workers = int(cfg.get("workers", 1))
+    cores = available_cores()
+    if workers > cores:
+        log.warning(
+            "workers=%d is more than the %d core(s) this run may use: capped at %d (more processes than "
+            "cores inflate every stage's time)", workers, cores, cores,
+        )  # fmt: skip
+        workers = cores
     if workers > 1 and len(todo) < workers:
         log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
         workers = max(len(todo), 1)
+    members = concurrent_members(cores)
+    oversubscribed = workers * members > cores
+    if oversubscribed:
+        log.warning(
+            "%d sweep members run at once with %d worker(s) each on %d core(s): their rows' timings are "
+            "taken oversubscribed (marked in the rows' `oversubscribed`)", members, workers, cores,
+        )  # fmt: skip
     bar = _progress(len(todo), bool(cfg.get("progress", True)))
     n_ok = n_done = 0
     t_sum = 0.0
@@ -230,6 +244,7 @@ def _run_locked(
 
     def consume(out: PairOutcome) -> None:
         nonlocal n_ok, n_done, t_sum
+        out.row.update(workers=workers, oversubscribed=oversubscribed)
         results.append(out.row)
         if out.row.get("trusted") is False and not out.row.get("error"):
             with bar.external_write_mode():  # a line of its own, not glued to the progress bar
@@ -305,6 +320,32 @@ def _run_locked(
         exc.run_dir = str(run_dir)  # type: ignore[attr-defined] - where a resume continues it
         raise exc
     return table, summary
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity: a cgroup or taskset may allow fewer than exist)."""
+    import os
+
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # no sched_getaffinity (macOS)
+        return max(os.cpu_count() or 1, 1)
+
+
+def concurrent_members(cores: int) -> int:
+    """How many sweep members run at once beside this one (the joblib launcher's n_jobs; 1 otherwise)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+            return 1
+        n_jobs = OmegaConf.select(HydraConfig.get(), "launcher.n_jobs", default=None)
+    except Exception:  # noqa: BLE001 - no Hydra context: a library call
+        return 1
+    if not isinstance(n_jobs, int) or n_jobs == 0:
+        return 1
+    return max(cores + 1 + n_jobs, 1) if n_jobs < 0 else n_jobs
 
 
 def _save_config(cfg: DictConfig, run_dir: Path) -> None:
