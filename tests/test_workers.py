@@ -33,7 +33,9 @@ def test_workers_above_the_cores_are_capped_and_said(tmp_path):
 
 
 def test_parallel_sweep_members_on_too_few_cores_mark_their_rows(tmp_path):
-    p = _one_core("-m", "hydra/launcher=local", "ratio=0.5,0.2", "limit=1", f"hydra.sweep.dir={tmp_path / 'S'}")
+    p = _one_core(
+        "-m", "hydra/launcher=local", "ratio=0.5,0.2", "limit=1", f"hydra.sweep.dir={tmp_path / 'S'}"
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     assert "2 sweep members run at once with 1 worker(s) each on 1 core(s)" in p.stdout + p.stderr
     members = sorted((tmp_path / "S").glob("*/results.csv"))
