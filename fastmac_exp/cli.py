@@ -81,6 +81,13 @@ def run_dataset(choice: str, family: str | None) -> str:
 
 
 OmegaConf.register_new_resolver("run_dataset", run_dataset, replace=True)
+def run_descriptor(choice: str, alias: str | None, model: str | None) -> str:
+    """The descriptor in a run directory's name: an alias option (descriptor=fcgf) is named by the model it
+    runs, as its rows are (fcgf_lite)."""
+    return Path(str(model)).stem if alias and model else choice
+
+
+OmegaConf.register_new_resolver("run_descriptor", run_descriptor, replace=True)
 OmegaConf.register_new_resolver("run_backend", lambda b: "" if b == "cpp" else f"_{b}", replace=True)
 # What Hydra, the experiment and its trackers write before the first pair: a directory holding nothing
 # else is no run.

@@ -303,6 +303,7 @@ def _run_locked(
             ratio=float(table["ratio"].dropna().iloc[0])
             if table["ratio"].dropna().nunique() == 1
             else float(cfg.ratio),
+            samples=cfg.get("samples"),
             seed=int(cfg.seed),
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,
@@ -451,7 +452,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"dataset={s.get('dataset')}"
         + (f" family={','.join(s['families'])}" if s.get("families") else "")
         + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
-        f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
+        + (f"samples={s['samples']} (ratio {s['ratio']})" if s.get("samples") else f"ratio={s.get('ratio')}")
+        + f" backend={s.get('backend')} protocol={s.get('protocol')}",
         "  ".join(
             [f"pairs: {s.get('pairs')}"]
             + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
