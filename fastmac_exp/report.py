@@ -248,9 +248,9 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 
 
 def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: int) -> list[Path]:
-    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files, first runs first; in a run the
-    pairs that failed first, then the worst RE), for a machine with no display to open the recordings
-    on; `out_dir/pairs/<run>/<pair>.png`."""
+    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files), the pairs a researcher wants to see
+    first across the whole sweep (not registered, then by RE; see worst_first), for a machine with no
+    display to open the recordings on; `out_dir/pairs/<run>/<pair>.png`."""
     if max_pairs <= 0:
         return []
     try:
@@ -259,31 +259,43 @@ def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: in
     except ImportError as exc:  # rerun-sdk missing: tables and plots still come
         log.warning("no pair snapshots: %s", exc)
         return []
+    recorded: dict[str, dict] = {}  # run -> {pair: geometry}, read when a run's pair is first wanted
+
+    def geometry(run: str, pair: str):
+        if run not in recorded:
+            run_dir = root / run
+            geos = {}
+            rrds = [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]
+            for rrd in rrds:
+                try:
+                    geos.update({g.name: g for g in read_pairs(rrd)})
+                except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
+                    log.warning("no snapshot of %s: %s", rrd, exc)
+            recorded[run] = geos
+        return recorded[run].get(pair)
+
     written: list[Path] = []
-    for run in sorted(table["run"].unique()):
-        run_dir = root / run
-        rows = table[table["run"] == run]
-        titles = {str(r["pair"]): _pair_title(r) for _, r in rows.iterrows()}
+    rows = table.reset_index(drop=True)
+    for k in worst_first(rows, positions=True):
+        if len(written) >= max_pairs:
+            break
+        r = rows.iloc[k]
+        run, pair = str(r["run"]), str(r["pair"])
+        geo = geometry(run, pair)
+        if geo is None:  # a pair that failed before it was recorded, or a run without recordings
+            continue
         sub = out_dir / "pairs" if run == "." else out_dir / "pairs" / run
-        geos = []
-        for rrd in [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]:
-            try:
-                geos += read_pairs(rrd)
-            except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
-                log.warning("no snapshot of %s: %s", rrd, exc)
-        rank = {pair: k for k, pair in enumerate(worst_first(rows))}
-        geos.sort(key=lambda g: rank.get(g.name, len(rank)))
-        for geo in geos[: max(0, max_pairs - len(written))]:
-            written.append(render_pair(geo, sub / f"{safe_name(geo.name)}.png", titles.get(geo.name, "")))
+        written.append(render_pair(geo, sub / f"{safe_name(pair)}.png", _pair_title(r)))
     return written
 
 
-def worst_first(rows: pd.DataFrame) -> list[str]:
-    """The pairs a researcher wants to see first: not registered, then by RE, largest first."""
-    ok = rows["success"].fillna(False).astype(bool).to_numpy()
+def worst_first(rows: pd.DataFrame, positions: bool = False) -> list:
+    """The pairs a researcher wants to see first: not registered, then by RE, largest first (their names,
+    or with positions=True their row positions)."""
+    ok = rows["success"].astype("boolean").fillna(False).astype(bool).to_numpy()
     re = pd.to_numeric(rows["re_deg"], errors="coerce").fillna(np.inf).to_numpy()
     order = sorted(range(len(rows)), key=lambda k: (ok[k], -re[k]))
-    return [str(rows["pair"].iloc[k]) for k in order]
+    return order if positions else [str(rows["pair"].iloc[k]) for k in order]
 
 
 def _pair_title(r: pd.Series) -> str:
