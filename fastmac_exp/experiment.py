@@ -219,17 +219,17 @@ def _run_locked(
     for t in trackers:
         t.start(plain_cfg, run_dir, names)
 
-    workers = int(cfg.get("workers", 1))
+    asked = workers = int(cfg.get("workers", 1))
+    if workers > 1 and len(todo) < workers:
+        log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
+        workers = max(len(todo), 1)
     cores = available_cores()
     if workers > cores:
         log.warning(
             "workers=%d is more than the %d core(s) this run may use: capped at %d (more processes than "
-            "cores inflate every stage's time)", workers, cores, cores,
+            "cores inflate every stage's time)", asked, cores, cores,
         )  # fmt: skip
         workers = cores
-    if workers > 1 and len(todo) < workers:
-        log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
-        workers = max(len(todo), 1)
     members = concurrent_members(cores)
     oversubscribed = workers * members > cores
     if oversubscribed:
