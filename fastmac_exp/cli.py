@@ -81,6 +81,8 @@ def run_dataset(choice: str, family: str | None) -> str:
 
 
 OmegaConf.register_new_resolver("run_dataset", run_dataset, replace=True)
+
+
 def run_descriptor(choice: str, alias: str | None, model: str | None) -> str:
     """The descriptor in a run directory's name: an alias option (descriptor=fcgf) is named by the model it
     runs, as its rows are (fcgf_lite)."""

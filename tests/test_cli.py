@@ -275,9 +275,7 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
     # the sweep ends with one table of its members and the command to run next
     table = p.stdout[p.stdout.index(f"sweep {tmp_path}:") :].splitlines()
     assert table[1].split() == ["member", "pairs", "RR", "%", "RE", "deg", "TE", "cm", "ms", "failed"]
-    assert table[2].startswith("0_sampler=highpass") and table[3].startswith(
-        "1_sampler=random"
-    )
+    assert table[2].startswith("0_sampler=highpass") and table[3].startswith("1_sampler=random")
     assert table[4] == f"next: python -m fastmac_exp.report {tmp_path}"
 
 
