@@ -11,6 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 from fastmac_exp.errors import FastMacError
 from fastmac_exp.resources import config_dir
 
+LOCAL_LAUNCHERS = ("basic", "local", "joblib")
+
 
 def sweep_members(argv: list[str]) -> list[list[str]]:
     """Each member's overrides, as Hydra's basic sweeper expands them: the config's hydra.sweeper.params
@@ -50,6 +52,9 @@ def check_members(argv: list[str]) -> str | None:
         return None
     if len(members) < 2:
         return None
+    # a cluster launcher's members read their files where they run: here only the run keys are checked
+    launcher = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra/launcher=")), "basic")
+    local = launcher in LOCAL_LAUNCHERS
     checked: set[str] = set()
     GlobalHydra.instance().clear()
     try:
@@ -60,7 +65,7 @@ def check_members(argv: list[str]) -> str | None:
                     cfg = compose("config", overrides=own)
                     check_run_keys(cfg)
                     key = _parts_key(cfg)
-                    if key not in checked:  # each distinct set of parts is built once
+                    if local and key not in checked:  # each distinct set of parts is built once
                         Components(cfg).names()
                         checked.add(key)
                 except Exception as exc:  # noqa: BLE001 - only our own errors are a member's mistake
