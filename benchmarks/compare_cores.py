@@ -157,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         import importlib.util
 
         new = importlib.util.find_spec("fastmac_exp._mac_core").origin
+    for flag, so in (("--old", args.old), ("--new", new)):
+        if not Path(so).is_file():  # else each timing process fails with a traceback
+            print(f"compare_cores: {flag} {so}: no such file (a built _mac_core*.so)", file=sys.stderr)
+            return 2
     with tempfile.TemporaryDirectory() as tmp:
         pairs = kept_sets(Path(tmp)) if args.kept else describe_pairs(Path(tmp))
         paths = [p for _, p in pairs]

@@ -1,7 +1,7 @@
 """FPFH inlier ratio with Open3D's +z normal orientation against orientation towards the sensor (origin),
 on every real pair of ../shared/data (5,000 correspondences, the dataset's voxel and thresholds).
 
-    python benchmarks/fpfh_orientation.py            # prints a markdown table
+    python benchmarks/fpfh_orientation.py [--data ../shared/data]   # prints a markdown table
 """
 
 from __future__ import annotations
@@ -20,8 +20,23 @@ from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
 from fastmac_exp.transforms import rotation_error_deg  # noqa: E402
 
 
-def main() -> int:
-    ds = SharedRealPairs(root=str(REPO.parent / "shared" / "data"))
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from fastmac_exp.errors import FastMacError
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"), help="the shared data folder")
+    args = ap.parse_args(argv)
+    try:
+        return table(SharedRealPairs(root=args.data))
+    except FastMacError as exc:  # missing data, an unreadable pair: one line, not a traceback
+        print(f"fpfh_orientation: {exc}", file=sys.stderr)
+        return 2
+
+
+def table(ds: SharedRealPairs) -> int:
+    ds.names()  # the index is read (and a missing one refused) before the table starts
     print("| pair | family | GT rotation (°) | inlier ratio, +z (open3d) | towards origin | ratio |")
     print("|---|---|---:|---:|---:|---:|")
     for i, name in enumerate(ds.names()):

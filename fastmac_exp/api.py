@@ -6,13 +6,16 @@ import time
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from fastmac_exp.backends.base import Backend
+from fastmac_exp.checks import check_devices
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
 from fastmac_exp.offset import describe_moved
+from fastmac_exp.options import apply_options, compose_run, instantiate_part
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.resolution import resolution_for
@@ -28,35 +31,72 @@ def register(
     voxel_size: float | None = None,
     sampler: Sampler | str = "highpass",
     ratio: float = 0.2,
+    samples: int | str | None = None,
     backend: Backend | str = "auto",
-    descriptor: Descriptor | None = None,
+    descriptor: Descriptor | str | None = None,
     seed: int = 0,
-    **mac_overrides: Any,
+    **options: Any,
 ) -> RegistrationResult:
     """Register two point clouds (FPFH correspondences) or a Correspondences set with FastMAC.
 
     source, target: (N, 3) arrays (metres), or a Correspondences as `source` and no target.
     family: whose rules apply ("3dmatch", "3dlomatch", "kitti"): graph parameters, inlier threshold.
     voxel_size: the descriptor's keypoint voxel for clouds (> 0; None: the family's, 0.05 m / 0.3 m).
-    sampler, ratio: FastMAC's sampler (a name or a Sampler) and the fraction it keeps, in (0, 1].
-    backend: "auto" (the C++ core, which the install builds; the Python reference if it is missing),
-    "cpp", "python", or a Backend. descriptor: for clouds (None: FPFH). seed: the sampler's draws.
-    mac_overrides: MacParams fields (search, max_nodes, inlier_threshold, ...).
+
+    The run's options are the command line's, by the same names and from the same config files (conf/,
+    fastmac_exp/options.py), so everything `python run.py GROUP=OPTION key=value` accepts is reachable here:
+
+    sampler: a conf/sampler option (highpass, highpass_squared, lowpass, allpass, xyz, random, fps,
+        deterministic, none) or a Sampler. ratio: the fraction it keeps, in (0, 1]; samples: a count K
+        instead (keep min(K, N); ratio is then ignored), passed on as given.
+    backend: a conf/backend option (cpp, python, turboreg, ransac, fgr, kiss_matcher), "auto" (the C++ core,
+        which the install builds; the Python reference if it is missing) or a Backend.
+    descriptor: for clouds, a conf/descriptor option (fpfh, fcgf, ...) or a Descriptor (None: FPFH).
+    seed: the sampler's (and RANSAC's) draws.
+    **options: any option of the chosen sampler, backend and descriptor (by name), and MAC's `mac.*` and
+        `graph.*` keys, by their bare name or, where a name is in two parts, by the full key as on the
+        command line (`**{"backend.tau": 0.1}` with backend="turboreg", whose `tau` is also graph.tau):
+        graph-filter samplers (highpass, lowpass, allpass): filter, normalize, squared, self_loops, impl
+            (auto | cpp | torch | python), device (cpu | cuda), scores (auto | exact | estimate),
+            estimate (a dict, or its keys anchors, min_anchors, pair_budget, pair_budget_per_node,
+            pilot_anchors, power, uniform_mix, max_tests);
+        xyz: code, sigma, knn, impl; deterministic: bandwidth, band, max_n, max_k;
+        cpp: num_threads; ransac: max_iterations, confidence, seed; fgr: iterations;
+        kiss_matcher: noise_bound_gain; turboreg: max_N, tau, num_pivot, radius_nms, tau_inlier, metric,
+            hard, refine_iters, num_threads;
+        mac: inlier_threshold, min_clique_size, refine_iters, reduction, search (auto | bnb | enumerate),
+            max_cliques, max_nodes, max_work, enumerate_budget, time_limit_s;
+        graph: kernel, alpha, tau, threshold (None = the family's table, fastmac_exp/params.py).
+    An unknown or ambiguous name raises InputError naming what to write.
 
     Returns a RegistrationResult: `pose` maps source into target. Check `result.ok` (False, with
-    `result.error` and a NaN pose, where MAC found no pose, e.g. no edge left after sampling) and
-    `result.inliers` against the clique size: a pose of two unrelated clouds maps hardly more
-    correspondences than its clique within the inlier threshold. Bad input raises InputError.
+    `result.error` and a NaN pose, where no pose was found, e.g. no edge left after sampling) and
+    `result.trusted`: False where the pose explains no more correspondences than chance would
+    (`result.confidence`, in [0, 1], is what it is thresholded by; docs/trust.md). Bad input raises
+    InputError.
 
     >>> result = register(src_xyz, tgt_xyz, family="3dmatch", voxel_size=0.05, ratio=0.2)
     >>> result.pose  # 4x4, maps source into target
+    >>> register(corr, samples=5000, scores="exact", backend="turboreg", num_pivot=1000)
     """
-    from fastmac_exp.backends import make_backend
-    from fastmac_exp.samplers import make_sampler
-
+    picks: dict[str, str] = {}
+    if isinstance(sampler, str):
+        picks["sampler"] = sampler
+    if isinstance(backend, str):
+        picks["backend"] = _backend_choice(backend)
+    if isinstance(descriptor, str):
+        picks["descriptor"] = descriptor
+    cfg = compose_run(picks)
+    cfg.seed = int(seed)
+    apply_options(cfg, options, tuple(picks))
+    check_devices(cfg)
     rng = np.random.default_rng(seed)
-    sampler_obj = make_sampler(sampler) if isinstance(sampler, str) else sampler
-    backend_obj = make_backend(backend) if isinstance(backend, str) else backend
+    sampler_obj = instantiate_part(cfg.sampler) if isinstance(sampler, str) else sampler
+    backend_obj = instantiate_part(cfg.backend) if isinstance(backend, str) else backend
+    if isinstance(descriptor, str):
+        descriptor = instantiate_part(cfg.descriptor)
+    graph_overrides = OmegaConf.to_container(cfg.graph, resolve=True)
+    mac_overrides = OmegaConf.to_container(cfg.mac, resolve=True)
     graph_key = "fpfh"
     describe_ms = 0.0
     resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
@@ -94,11 +134,19 @@ def register(
         describe_ms = (time.perf_counter() - t0) * 1e3
     if len(corr) < 3:  # else the sampler's advice would be a ratio above 1
         raise InputError(f"{len(corr)} correspondence(s): a clique, and a pose, needs at least 3")
-    params = mac_params_for(family, graph_key, resolution, mac_overrides=mac_overrides)
-    sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, mac_overrides=mac_overrides).graph
+    params = mac_params_for(family, graph_key, resolution, graph_overrides, mac_overrides)
+    sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, graph_overrides, mac_overrides).graph
     try:
         result, _ = register_correspondences(
-            corr, params, sampler_obj, backend_obj, ratio, family, rng, sample_graph=sample_graph
+            corr,
+            params,
+            sampler_obj,
+            backend_obj,
+            ratio,
+            family,
+            rng,
+            sample_graph=sample_graph,
+            samples=samples,
         )
     except RegistrationFailed as exc:  # a result flagged as failed, not an exception to catch
         nan = np.full((4, 4), np.nan)
@@ -108,6 +156,15 @@ def register(
         )
     result.timings["describe"] = describe_ms
     return result
+
+
+def _backend_choice(name: str) -> str:
+    """A backend name as the config group spells it; "auto" is the C++ core where it is built."""
+    if name != "auto":
+        return name
+    from fastmac_exp import core
+
+    return "cpp" if core.available() else "python"
 
 
 def _points(a: Any, what: str) -> np.ndarray:

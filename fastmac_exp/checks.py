@@ -39,6 +39,7 @@ def check_run_keys(cfg: DictConfig) -> None:
     workers = cfg.get("workers", 1)
     if not _is_int(workers) or workers < 1:
         raise InputError(f"workers must be a whole number >= 1, got {workers!r} (config key: workers)")
+    check_devices(cfg)
     graph = OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None
     mac = OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None
     try:  # the overrides' own rules; the family's rules are checked again per pair
@@ -59,3 +60,48 @@ def run_samples(cfg: DictConfig) -> int | str | None:
 def run_ratio(cfg: DictConfig) -> float:
     """The run's ratio as a number (NaN for ratio=auto: each pair's row says what its keep was)."""
     return float("nan") if is_auto(cfg.get("ratio")) else float(cfg.ratio)
+
+
+def check_devices(cfg: DictConfig) -> None:
+    """sampler.device and the descriptor's execution_providers name something this machine has: a GPU that
+    is not there is one InputError before anything is created, not a silent CPU run or a failure per pair."""
+    device = OmegaConf.select(cfg, "sampler.device", default=None)
+    if device is not None and str(device) != "cpu":
+        device = str(device)
+        if not (device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+            raise InputError(
+                f"sampler.device must be cpu or cuda (cuda:N for the N-th GPU), got {device!r} "
+                "(config key: sampler.device)"
+            )
+        import torch
+
+        if not torch.cuda.is_available():
+            raise InputError(
+                f"sampler.device={device}, but torch {torch.__version__} sees no CUDA device on this "
+                "machine; use sampler.device=cpu"
+            )
+        impl = OmegaConf.select(cfg, "sampler.impl", default="auto")
+        if impl != "torch":  # auto picks the C++ core wherever it is built, on the CPU
+            raise InputError(
+                f"sampler.device={device} is the torch engine's: add sampler.impl=torch (got {impl!r})"
+            )
+    providers = OmegaConf.select(cfg, "descriptor.execution_providers", default=None)
+    if providers is not None and providers != "auto":
+        check_providers(providers)
+
+
+def check_providers(providers: Any) -> None:
+    """Every name of descriptor.execution_providers is an alias (cpu, cuda, tensorrt) or one of onnxruntime's
+    provider names (one this onnxruntime lacks is dropped at run time with a notice: the CPU fallback)."""
+    import onnxruntime as ort
+
+    from fastmac_exp.descriptors.onnx_descriptor import PROVIDER_ALIASES
+
+    names = [providers] if isinstance(providers, str) else list(providers)
+    known = set(ort.get_all_providers())
+    for name in names:
+        if str(name).lower() not in PROVIDER_ALIASES and str(name) not in known:
+            raise InputError(
+                f"descriptor.execution_providers: unknown provider {name!r}; use auto, or a list of "
+                f"{', '.join(PROVIDER_ALIASES)} or onnxruntime's names (CUDAExecutionProvider, ...)"
+            )

@@ -4,6 +4,7 @@ missing launcher plugin or a mistyped key into a message that says what to do.""
 
 from __future__ import annotations
 
+import difflib
 import logging
 import shutil
 import signal
@@ -80,6 +81,15 @@ def run_dataset(choice: str, family: str | None) -> str:
 
 
 OmegaConf.register_new_resolver("run_dataset", run_dataset, replace=True)
+
+
+def run_descriptor(choice: str, alias: str | None, model: str | None) -> str:
+    """The descriptor in a run directory's name: an alias option (descriptor=fcgf) is named by the model it
+    runs, as its rows are (fcgf_lite)."""
+    return Path(str(model)).stem if alias and model else choice
+
+
+OmegaConf.register_new_resolver("run_descriptor", run_descriptor, replace=True)
 OmegaConf.register_new_resolver("run_backend", lambda b: "" if b == "cpp" else f"_{b}", replace=True)
 # What Hydra, the experiment and its trackers write before the first pair: a directory holding nothing
 # else is no run.
@@ -124,6 +134,8 @@ def main(cfg: DictConfig) -> float:
     except KeyboardInterrupt as exc:
         if not getattr(exc, "saved", False):
             log.warning("interrupted before the run started: nothing was written")
+        elif getattr(exc, "run_dir", None):
+            log.warning("continue it with:\n  %s", continue_command(exc.run_dir, single, hydra_cfg))
         if single:
             drop_if_empty(run_dir)
         sys.exit(130)
@@ -155,6 +167,33 @@ def main(cfg: DictConfig) -> float:
     return float(summary.get("RR", 0.0))
 
 
+def program() -> str:
+    """How this app was started, as a user would type it again."""
+    argv0 = sys.argv[0]
+    if Path(argv0).name == "run.py":
+        return f"python {argv0}"
+    if Path(argv0).name == "__main__.py" and Path(argv0).parent.name == "fastmac_exp":
+        return "python -m fastmac_exp"
+    return Path(argv0).name
+
+
+def continue_command(run_dir: str, single: bool, hydra_cfg) -> str:
+    """The command that continues an interrupted run (its own overrides and resume=DIR) or sweep (its
+    command line with resume=auto into the same sweep directory)."""
+    import shlex
+
+    def not_resume(o: str) -> bool:
+        return o.lstrip("+~").split("=", 1)[0] != "resume"
+
+    if single:
+        args = [o for o in hydra_cfg.overrides.task if not_resume(o)] + [f"resume={run_dir}"]
+    else:
+        args = [o for o in sys.argv[1:] if not_resume(o)] + ["resume=auto"]
+        if not any(o.startswith("hydra.sweep.dir=") for o in args):
+            args.append(f"hydra.sweep.dir={hydra_cfg.sweep.dir}")
+    return " ".join([program(), *(shlex.quote(a) for a in args)])
+
+
 def key_value(overrides: list[str], key: str) -> str:
     return next((o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == key), "N")
 
@@ -169,7 +208,6 @@ def check_keys(argv: list[str]) -> str | None:
     added = [k for k in added if not (config_dir() / k.replace(".", "/")).is_dir()]  # +group=option
     if not assigned:
         return None
-    import difflib
     import re
 
     from hydra import compose, initialize_config_dir
@@ -191,11 +229,20 @@ def check_keys(argv: list[str]) -> str | None:
     key = None
     try:
         composed(overrides)
-    except Exception as exc:  # noqa: BLE001 - anything but a missing key is left to Hydra's own report
+    except Exception as exc:  # noqa: BLE001 - anything but a missing key or option is left to Hydra's report
+        missing_option = re.search(r"Could not find '([^'/]+)/([^']+)'", str(exc))
+        if missing_option:
+            return unknown_option(*missing_option.groups())
         m = re.search(r"Could not override '([^']+)'", str(exc))
         if not m:
             return None
         key = m.group(1)
+    group_value = next((o for o in overrides if base(o) == key and not o.startswith("+")), None)
+    if key and group_value and (config_dir() / key).is_dir():  # a group outside the defaults list
+        return (
+            f"{key} is a config group that the defaults do not include: add it with a +, "
+            f"+{group_value} (python run.py --help lists the groups)"
+        )
     if key == "dataset.limit":
         n = key_value(overrides, key)
         return f"dataset.limit is a run key: write limit={n} (the first N pairs of any dataset)"
@@ -221,6 +268,17 @@ def check_keys(argv: list[str]) -> str | None:
     close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]!r}?" if close else ""
     return f"unknown config key {key!r}{hint} (python run.py --cfg job shows every key)"
+
+
+def unknown_option(group: str, option: str) -> str:
+    """One line for GROUP=OPTION with no conf/GROUP/OPTION.yaml (Hydra's lists every option on its own
+    line, below its search path)."""
+    from fastmac_exp.options import choices
+
+    known = choices(group)
+    close = [k for k in known if k.startswith(option)] or difflib.get_close_matches(option, known, n=1)
+    hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
+    return f"unknown {group} {option!r}{hint} (choose one of {', '.join(known)})"
 
 
 def check_output_dir(argv: list[str]) -> str | None:
@@ -254,6 +312,10 @@ def _own_error(exc: BaseException) -> FastMacError | None:
 def run() -> None:
     """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
     hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
+    if not hint and {"-m", "--multirun"} & set(sys.argv[1:]):
+        from fastmac_exp.sweep_check import check_members
+
+        hint = check_members(sys.argv[1:])
     if hint:
         log.addHandler(logging.StreamHandler())
         log.error(hint)

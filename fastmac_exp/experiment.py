@@ -30,6 +30,7 @@ from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
 from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.row import PairRow
 from fastmac_exp.runlock import RunLock
+from fastmac_exp.trust import TRUST_LEVEL
 
 log = logging.getLogger(__name__)
 
@@ -219,10 +220,24 @@ def _run_locked(
     for t in trackers:
         t.start(plain_cfg, run_dir, names)
 
-    workers = int(cfg.get("workers", 1))
+    asked = workers = int(cfg.get("workers", 1))
     if workers > 1 and len(todo) < workers:
         log.info("workers=%d: %d pair(s) to run, so %d worker(s)", workers, len(todo), max(len(todo), 1))
         workers = max(len(todo), 1)
+    cores = available_cores()
+    if workers > cores:
+        log.warning(
+            "workers=%d is more than the %d core(s) this run may use: capped at %d (more processes than "
+            "cores inflate every stage's time)", asked, cores, cores,
+        )  # fmt: skip
+        workers = cores
+    members = concurrent_members(cores)
+    oversubscribed = workers * members > cores
+    if oversubscribed:
+        log.warning(
+            "%d sweep members run at once with %d worker(s) each on %d core(s): their rows' timings are "
+            "taken oversubscribed (marked in the rows' `oversubscribed`)", members, workers, cores,
+        )  # fmt: skip
     bar = _progress(len(todo), bool(cfg.get("progress", True)))
     n_ok = n_done = 0
     t_sum = 0.0
@@ -230,7 +245,11 @@ def _run_locked(
 
     def consume(out: PairOutcome) -> None:
         nonlocal n_ok, n_done, t_sum
+        out.row.update(workers=workers, oversubscribed=oversubscribed)
         results.append(out.row)
+        if out.row.get("trusted") is False and not out.row.get("error"):
+            with bar.external_write_mode():  # a line of its own, not glued to the progress bar
+                log.warning("%s", untrusted_line(out.row))
         if out.row.get("success") is None and not out.row.get("error") and out.row.get("pose"):
             write_pose(run_dir, out.row)  # no GT: the estimate is the result
         for t in trackers:
@@ -260,22 +279,21 @@ def _run_locked(
             pool.shutdown()
     except KeyboardInterrupt:
         interrupted = True
-        if results.rows:
-            log.warning(
-                "interrupted: %d pairs are saved in %s; rerun with resume=%s",
-                len(results.rows),
-                run_dir,
-                run_dir,
-            )
-        else:
-            log.warning("interrupted before the first pair finished: nothing to resume")
     finally:
         bar.close()
+        if interrupted:  # after the bar is closed: a line of its own
+            n = len(results.rows)
+            if n:
+                saved = "1 pair is" if n == 1 else f"{n} pairs are"
+                log.warning("interrupted: %s saved in %s", saved, run_dir)
+            else:
+                log.warning("interrupted before the first pair finished: nothing to resume")
         keep = bool(results.rows) or not interrupted  # an interrupted start-up leaves no tables of nothing
         table = results.write_tables() if keep else results.table()
         summary = summarize(table)
         summary["failures"] = failure_reasons(table)
         summary["unscored_pairs"] = unscored_pairs(table, run_dir)
+        summary["untrusted_pairs"] = untrusted_pairs(table)
         summary.update(
             run_dir=str(run_dir),
             dataset=comp.labels["dataset"],
@@ -286,6 +304,7 @@ def _run_locked(
             ratio=float(table["ratio"].dropna().iloc[0])
             if table["ratio"].dropna().nunique() == 1
             else run_ratio(cfg),
+            samples=cfg.get("samples"),
             seed=int(cfg.seed),
             protocol=str(cfg.protocol),
             complete=len(table) == len(names) and not interrupted,
@@ -300,8 +319,35 @@ def _run_locked(
     if interrupted:
         exc = KeyboardInterrupt("run interrupted; its finished pairs are saved")
         exc.saved = True  # type: ignore[attr-defined] - the console has said what was saved
+        exc.run_dir = str(run_dir)  # type: ignore[attr-defined] - where a resume continues it
         raise exc
     return table, summary
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its affinity: a cgroup or taskset may allow fewer than exist)."""
+    import os
+
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # no sched_getaffinity (macOS)
+        return max(os.cpu_count() or 1, 1)
+
+
+def concurrent_members(cores: int) -> int:
+    """How many sweep members run at once beside this one (the joblib launcher's n_jobs; 1 otherwise)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+            return 1
+        n_jobs = OmegaConf.select(HydraConfig.get(), "launcher.n_jobs", default=None)
+    except Exception:  # noqa: BLE001 - no Hydra context: a library call
+        return 1
+    if not isinstance(n_jobs, int) or n_jobs == 0:
+        return 1
+    return max(cores + 1 + n_jobs, 1) if n_jobs < 0 else n_jobs
 
 
 def _save_config(cfg: DictConfig, run_dir: Path) -> None:
@@ -350,9 +396,28 @@ def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[
     return [
         {"pair": str(r["pair"]), "pose": pose_matrix(r["pose"]).tolist(),
          "pose_file": str(pose_file(run_dir, str(r["pair"]))), "clique_size": _int(r.get("clique_size")),
-         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in"))}
+         "pose_inliers": _int(r.get("pose_inliers")), "n_in": _int(r.get("n_in")),
+         "trusted": None if pd.isna(r.get("trusted", np.nan)) else bool(r.get("trusted")),
+         "confidence": None if pd.isna(r.get("confidence", np.nan)) else float(r.get("confidence"))}
         for _, r in rows.head(most).iterrows()
     ]  # fmt: skip
+
+
+def untrusted_line(row: dict[str, Any]) -> str:
+    return (
+        f"UNTRUSTED POSE for {row.get('pair')}: it explains {row.get('pose_inliers')} of {row.get('n_in')} "
+        f"correspondences, no more than chance would (confidence {float(row.get('confidence') or 0):.3f} < "
+        f"{TRUST_LEVEL}; docs/trust.md): do not use it"
+    )
+
+
+def untrusted_pairs(table: pd.DataFrame) -> list[str]:
+    """The pairs whose pose the GT-free check does not trust (fastmac_exp.trust), failed pairs aside."""
+    if "trusted" not in table or not len(table):
+        return []
+    errors = table["error"].fillna("").astype(str).ne("") if "error" in table else False
+    untrusted = table["trusted"].astype("boolean").eq(False).fillna(False) & ~errors
+    return [str(p) for p in table.loc[untrusted, "pair"]]
 
 
 def _config_family(cfg: DictConfig) -> list[str]:
@@ -390,12 +455,14 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"dataset={s.get('dataset')}"
         + (f" family={','.join(s['families'])}" if s.get("families") else "")
         + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
-        f"ratio={s.get('ratio')} backend={s.get('backend')} protocol={s.get('protocol')}",
+        + (f"samples={s['samples']} (ratio {s['ratio']})" if s.get("samples") else f"ratio={s.get('ratio')}")
+        + f" backend={s.get('backend')} protocol={s.get('protocol')}",
         "  ".join(
             [f"pairs: {s.get('pairs')}"]
             + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
             + ([f"no ground truth (not scored): {unscored}"] if unscored else [])
             + [f"failed with an error: {s.get('failed', 0)}"]
+            + ([f"UNTRUSTED poses: {len(s['untrusted_pairs'])}"] if s.get("untrusted_pairs") else [])
         ),
         f"{rr}   RE: {s.get('RE_deg', nan):.2f} deg   TE: {s.get('TE_cm', nan):.2f} cm   "
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
@@ -403,12 +470,25 @@ def format_summary(summary: dict[str, Any]) -> str:
         + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
     ]
     for u in (s.get("unscored_pairs") or [])[:3]:
+        untrusted = (
+            f"UNTRUSTED POSE (confidence {u['confidence']:.3f}: no more correspondences than chance; "
+            "do not use it); "
+            if u.get("trusted") is False
+            else ""
+        )
         lines.append(
-            f"{u['pair']}: no ground truth: not scored; clique of {u['clique_size']}, {u['pose_inliers']} of "
+            f"{u['pair']}: no ground truth: not scored; {untrusted}clique of {u['clique_size']}, "
+            f"{u['pose_inliers']} of "
             f"{u['n_in']} correspondences within the inlier threshold; estimated pose (source -> target, "
             f"{u['pose_file']}):"
         )
         lines += ["  " + " ".join(f"{v:12.6f}" for v in row) for row in u["pose"]]
+    bad = s.get("untrusted_pairs") or []
+    if bad:
+        lines.append(
+            f"WARNING: {len(bad)} UNTRUSTED pose(s), no more correspondences than chance would explain "
+            f"(docs/trust.md): {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}"
+        )
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
         lines.append(f"failed x{info['count']}: {reason} ({pairs})")

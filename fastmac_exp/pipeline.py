@@ -23,6 +23,7 @@ from fastmac_exp.offset import common_offset, describe_moved, moved_pair, to_ori
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.row import PairRow
 from fastmac_exp.samplers import Sampler, SampleResult
+from fastmac_exp.trust import assess
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
@@ -97,6 +98,7 @@ def run_pair(
         row.set(scores=sample.scores_used, anchors=sample.anchors)
     if sample.core:
         row.set(core=sample.core)
+    row.set(engine=sampler_engine(sampler, sample))
     row.set(
         samples=samples,
         ratio=sample.ratio,
@@ -105,6 +107,8 @@ def run_pair(
         clique_size=len(result.clique),
         clique_inliers=int(corr.labels[result.clique].sum()) if corr.labels is not None else None,
         pose_inliers=result.inliers,
+        trusted=result.trusted,
+        confidence=result.confidence,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -123,6 +127,25 @@ def run_pair(
     row.timings = {"describe": describe_ms, **result.timings}
     row.pose = " ".join(f"{v:.17g}" for v in result.pose.ravel())  # exact: georeferenced poses are ~1e6
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
+
+
+def sampler_engine(sampler: Sampler, sample: SampleResult) -> str:
+    """Which engine computed the sampler's graph signals (fastmac_exp.graph.signals.compute_signals'
+    choice): cpp, torch:<device> or python; "" for samplers without a graph."""
+    impl = getattr(sampler, "impl", None)
+    if impl is None or sample.scores is None and not sample.scores_used:
+        return ""
+    device = str(getattr(sampler, "device", "cpu"))
+    if sample.scores_used == "estimate":
+        return "cpp"
+    if impl in ("auto", "cpp"):
+        from fastmac_exp import core
+
+        if impl == "cpp" or core.available():
+            return "cpp"
+    if impl == "torch" or device != "cpu":
+        return f"torch:{device}"
+    return "python"
 
 
 def pose_inliers(corr: Correspondences, pose: np.ndarray, threshold: float) -> int:
@@ -182,6 +205,11 @@ def register_correspondences(
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
     result.inliers = pose_inliers(work, result.pose, params.inlier_threshold)
+    verdict = assess(
+        work.src, work.tgt, result.pose, params.inlier_threshold, result.inliers, len(result.clique)
+    )
+    result.trusted, result.confidence = verdict.trusted, verdict.confidence
+    result.chance_inliers = verdict.chance_inliers
     if offset.any():
         result.pose = to_original(result.pose, offset)
         result.pose_unrefined = to_original(result.pose_unrefined, offset)

@@ -28,6 +28,11 @@ from fastmac_exp.metrics import MAC_STAGES  # noqa: E402
 
 PROFILE_STAGES = MAC_STAGES
 STAGE_NAMES = {"sampling": "Sampling", "graph": "GC", "cliques": "MCS", "selection": "NCS", "pose": "PE"}
+# the paper's stage names, spelt out in the figure's legend (not only in report.md)
+STAGE_LONG = {
+    "sampling": "Sampling", "graph": "GC: graph construction", "cliques": "MCS: maximal clique search",
+    "selection": "NCS: node-guided clique selection", "pose": "PE: pose estimation",
+}  # fmt: skip
 STAGE_COLORS = {"sampling": "#4c72b0", "graph": "#dd8452", "cliques": "#55a868", "selection": "#c44e52",
                 "pose": "#8172b3"}  # fmt: skip
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
@@ -158,15 +163,15 @@ def plot_time_profile(
             bottom = np.zeros(len(m))
             for s in stages:
                 v = np.nan_to_num(m[f"t_{s}_ms"].to_numpy(float))
-                ax.bar(x, v, bottom=bottom, color=STAGE_COLORS[s], label=STAGE_NAMES[s], width=0.7)
+                ax.bar(x, v, bottom=bottom, color=STAGE_COLORS[s], label=STAGE_LONG[s], width=0.7)
                 bottom += v
             if "t_total_ms" in m:
                 tot = m["t_total_ms"].to_numpy(float)
                 ax.scatter(x, tot, marker="_", s=300, color="k", zorder=3, label="median total")
-                for xi, ti in zip(x, tot, strict=True):
-                    if math.isfinite(ti):
-                        ax.annotate(f"{ti:.3g}", (xi, ti), textcoords="offset points", xytext=(0, 4),
-                                    ha="center", fontsize=7)  # fmt: skip
+                for xi, ti, top in zip(x, tot, bottom, strict=True):
+                    if math.isfinite(ti):  # above the bar too: the medians' sum can exceed the total's median
+                        ax.annotate(f"{ti:.3g}", (xi, max(ti, top)), textcoords="offset points",
+                                    xytext=(0, 4), ha="center", fontsize=7)  # fmt: skip
             ax.set_xticks(x)
             ax.set_xticklabels([f"{r:g}" for r in m["ratio"]])
             ax.set_xlabel("sampling ratio")
@@ -181,7 +186,12 @@ def plot_time_profile(
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
     _suptitle(fig, title)
-    axes[0, 0].legend(handles, labels, loc="upper right", fontsize=7, framealpha=0.85)
+    # below the panels: inside one it hid the bars and total labels it lay on
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=8,
+               frameon=False)  # fmt: skip
+    for ax in axes.flat:  # room above the tallest bar for its total's label
+        if ax.get_visible():
+            ax.set_ylim(top=ax.get_ylim()[1] * 1.08)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -18,12 +18,15 @@ import math
 import sys
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 from fastmac_exp.metrics import STAGES, cached_rows
 from fastmac_exp.results import LOG_NAME, load_table, read_rows, to_table
+from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, differences
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +77,53 @@ def load_results(root: str | Path, exclude: Iterable[Path] = ()) -> pd.DataFrame
         if len(t):
             t = t.copy()
             t.insert(0, "run", str(run_dir.relative_to(root)) if run_dir != root else ".")
-            tables.append(t)
+            tables.append((run_dir, t))
     if not tables:
         return pd.DataFrame()
-    return pd.concat(tables, ignore_index=True)
+    return pd.concat(merge_same_experiments(tables), ignore_index=True)
+
+
+def _saved_config(run_dir: Path):
+    for name in (RESUMED_NAME, CONFIG_NAME):
+        if (run_dir / name).is_file():
+            try:
+                cfg = OmegaConf.load(run_dir / name)
+            except Exception:  # noqa: BLE001 - no config to compare: the run stands alone
+                return None
+            cfg.pop("limit", None)  # a resume may raise it: runs that differ only there are one experiment
+            return cfg
+    return None
+
+
+def merge_same_experiments(tables: list[tuple[Path, pd.DataFrame]]) -> list[pd.DataFrame]:
+    """Runs of one configuration (e.g. two sweep members, one started again with a higher limit) hold the
+    same measurement of their common pairs: each pair is counted once (from the run holding the most
+    rows), with a warning naming the runs, instead of twice."""
+    classes: list[tuple[Any, list[tuple[Path, pd.DataFrame]]]] = []
+    for run_dir, t in tables:
+        cfg = _saved_config(run_dir)
+        for saved, members in classes:
+            if cfg is not None and saved is not None and not differences(saved, cfg):
+                members.append((run_dir, t))
+                break
+        else:
+            classes.append((cfg, [(run_dir, t)]))
+    out = []
+    for _, members in classes:
+        if len(members) == 1:
+            out.append(members[0][1])
+            continue
+        members.sort(key=lambda m: -len(m[1]))
+        merged = pd.concat([t for _, t in members], ignore_index=True)
+        keys = [k for k in ("pair", "seed") if k in merged]
+        dup = merged.duplicated(keys, keep="first")
+        log.warning(
+            "%s hold one configuration (only limit differs): %d repeated pair(s) counted once",
+            ", ".join(str(m[0]) for m in members),
+            int(dup.sum()),
+        )
+        out.append(merged[~dup])
+    return out
 
 
 # -- aggregation ------------------------------------------------------------------------------------------
@@ -202,9 +248,9 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 
 
 def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: int) -> list[Path]:
-    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files, first runs first; in a run the
-    pairs that failed first, then the worst RE), for a machine with no display to open the recordings
-    on; `out_dir/pairs/<run>/<pair>.png`."""
+    """PNGs of up to `max_pairs` recorded pairs (the runs' .rrd files), the pairs a researcher wants to see
+    first across the whole sweep (not registered, then by RE; see worst_first), for a machine with no
+    display to open the recordings on; `out_dir/pairs/<run>/<pair>.png`."""
     if max_pairs <= 0:
         return []
     try:
@@ -213,31 +259,43 @@ def pair_snapshots(root: Path, table: pd.DataFrame, out_dir: Path, max_pairs: in
     except ImportError as exc:  # rerun-sdk missing: tables and plots still come
         log.warning("no pair snapshots: %s", exc)
         return []
+    recorded: dict[str, dict] = {}  # run -> {pair: geometry}, read when a run's pair is first wanted
+
+    def geometry(run: str, pair: str):
+        if run not in recorded:
+            run_dir = root / run
+            geos = {}
+            rrds = [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]
+            for rrd in rrds:
+                try:
+                    geos.update({g.name: g for g in read_pairs(rrd)})
+                except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
+                    log.warning("no snapshot of %s: %s", rrd, exc)
+            recorded[run] = geos
+        return recorded[run].get(pair)
+
     written: list[Path] = []
-    for run in sorted(table["run"].unique()):
-        run_dir = root / run
-        rows = table[table["run"] == run]
-        titles = {str(r["pair"]): _pair_title(r) for _, r in rows.iterrows()}
+    rows = table.reset_index(drop=True)
+    for k in worst_first(rows, positions=True):
+        if len(written) >= max_pairs:
+            break
+        r = rows.iloc[k]
+        run, pair = str(r["run"]), str(r["pair"])
+        geo = geometry(run, pair)
+        if geo is None:  # a pair that failed before it was recorded, or a run without recordings
+            continue
         sub = out_dir / "pairs" if run == "." else out_dir / "pairs" / run
-        geos = []
-        for rrd in [*recording_parts(run_dir / "recording.rrd"), *sorted((run_dir / "rerun").glob("*.rrd"))]:
-            try:
-                geos += read_pairs(rrd)
-            except Exception as exc:  # noqa: BLE001 - one unreadable recording must not stop the report
-                log.warning("no snapshot of %s: %s", rrd, exc)
-        rank = {pair: k for k, pair in enumerate(worst_first(rows))}
-        geos.sort(key=lambda g: rank.get(g.name, len(rank)))
-        for geo in geos[: max(0, max_pairs - len(written))]:
-            written.append(render_pair(geo, sub / f"{safe_name(geo.name)}.png", titles.get(geo.name, "")))
+        written.append(render_pair(geo, sub / f"{safe_name(pair)}.png", _pair_title(r)))
     return written
 
 
-def worst_first(rows: pd.DataFrame) -> list[str]:
-    """The pairs a researcher wants to see first: not registered, then by RE, largest first."""
-    ok = rows["success"].fillna(False).astype(bool).to_numpy()
+def worst_first(rows: pd.DataFrame, positions: bool = False) -> list:
+    """The pairs a researcher wants to see first: not registered, then by RE, largest first (their names,
+    or with positions=True their row positions)."""
+    ok = rows["success"].astype("boolean").fillna(False).astype(bool).to_numpy()
     re = pd.to_numeric(rows["re_deg"], errors="coerce").fillna(np.inf).to_numpy()
     order = sorted(range(len(rows)), key=lambda k: (ok[k], -re[k]))
-    return [str(rows["pair"].iloc[k]) for k in order]
+    return order if positions else [str(rows["pair"].iloc[k]) for k in order]
 
 
 def _pair_title(r: pd.Series) -> str:

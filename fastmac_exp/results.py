@@ -22,7 +22,8 @@ LOG_NAME = "results.jsonl"
 COLUMNS = [
     "index", "dataset", "pair", "scene", "family", "descriptor", "sampler", "ratio", "backend", "seed",
     "protocol", "resolution", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept",
-    "clique_size", "clique_inliers", "pose_inliers", "re_deg", "te_cm", "success", "score", "n_edges",
+    "clique_size", "clique_inliers", "pose_inliers", "trusted", "confidence", "re_deg", "te_cm", "success",
+    "score", "n_edges",
     "n_cliques", "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms",
     "t_sampling_ms", "t_graph_ms", "t_cliques_ms", "t_selection_ms", "t_pose_ms", "t_total_ms", "error",
     "pose",

@@ -51,11 +51,14 @@ class PairRow:
     scores: Any = UNSET  # graph-filter samplers: "exact" or "estimate" (what sampler.scores=auto chose)
     anchors: Any = UNSET  # the estimate's anchors (0 for exact scores)
     core: Any = UNSET  # samples=auto: the estimated dense core that sized the keep (docs/keep_size.md)
+    engine: Any = UNSET  # what computed the sampler's graph signals: cpp, torch:<device> or python
     n_kept: Any = UNSET
     inlier_ratio_kept: Any = UNSET
     clique_size: Any = UNSET
     clique_inliers: Any = UNSET
     pose_inliers: Any = UNSET  # correspondences within the inlier threshold under the pose: a confidence
+    trusted: Any = UNSET  # GT-free: the pose explains more correspondences than chance (fastmac_exp.trust)
+    confidence: Any = UNSET  # ... 1 - its false-accept chance, what `trusted` thresholds
     score: Any = UNSET
     n_edges: Any = UNSET
     n_cliques: Any = UNSET

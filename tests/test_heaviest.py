@@ -96,7 +96,7 @@ def second_order_weights(a: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return g[i, j]
 
 
-@pytest.mark.parametrize("missing", [0, 3, 12, 24])
+@pytest.mark.parametrize("missing", [0, 3, 12, pytest.param(24, marks=pytest.mark.slow)])  # 24: 8 s
 def test_near_clique_of_hundred_nodes(missing):
     """The shape high-pass sampling produces: a near-clique whose maximal cliques explode in number."""
     rng = np.random.default_rng(missing)

@@ -138,7 +138,7 @@ def test_sigterm_with_workers_ends_them_writes_the_tables_and_says_how_to_resume
     run_dir = tmp_path / "run"
     rc, out = _signal_after_first_row(signal.SIGTERM, run_dir, "workers=2", "limit=8", "tracker=none")
     assert rc == 130, out[-2000:]
-    assert f"rerun with resume={run_dir}" in out and "Traceback" not in out
+    assert f"resume={run_dir}" in out and "Traceback" not in out
     rows = read_rows(run_dir / "results.jsonl")
     assert 1 <= len(rows) < 8
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -151,7 +151,7 @@ def test_ctrl_c_with_the_trackers_on_prints_no_traceback(tmp_path):
     run_dir = tmp_path / "run"
     rc, out = _signal_after_first_row(signal.SIGINT, run_dir, "limit=8")
     assert rc == 130, out[-2000:]
-    saved = re.search(r"interrupted: (\d+) pairs are saved", out)
+    saved = re.search(r"interrupted: (\d+) pairs? (is|are) saved", out)
     assert saved and int(saved.group(1)) == len(read_rows(run_dir / "results.jsonl")), out[-2000:]
     assert "Traceback" not in out and "KeyboardInterrupt" not in out
     assert (run_dir / "recording.rrd").is_file() and (run_dir / "summary.json").is_file()
@@ -208,3 +208,39 @@ def test_resume_keeps_the_earlier_recording_and_wandb_run_and_the_report_reads_e
     assert report.returncode == 0, report.stderr[-2000:]
     pngs = sorted(p.name for p in (run_dir / "report" / "pairs").glob("*.png"))
     assert pngs == ["3dmatch_000.png", "3dmatch_001.png"]
+
+
+def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_its_own(tmp_path):
+    """Issue 42 item 6: the hint carries the run's overrides (a bare resume=DIR is refused as another
+    experiment), stands on its own line even with the progress bar on, and counts in the right number."""
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "run.py", f"hydra.run.dir={run_dir}", "limit=8", "seed=3", "tracker=none"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        deadline = time.time() + 120
+        log = run_dir / "results.jsonl"
+        while time.time() < deadline and (not log.exists() or not log.read_text().strip()):
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=120)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, out[-2000:]
+    lines = out.split("\n")
+    (said,) = [ln for ln in lines if "interrupted: " in ln]
+    assert said.startswith("[") and "pair/s" not in said, said  # the log line alone, not after the bar
+    n = len(read_rows(log))
+    assert (
+        f"interrupted: 1 pair is saved in {run_dir}" if n == 1 else f"interrupted: {n} pairs are saved"
+    ) in said
+    command = lines[lines.index(next(ln for ln in lines if ln.endswith("continue it with:"))) + 1].strip()
+    assert command == f"python run.py limit=8 seed=3 tracker=none resume={run_dir}", command
+    again = subprocess.run(
+        [sys.executable, *command.split()[1:]], cwd=REPO, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
+    assert len(read_rows(log)) == 8

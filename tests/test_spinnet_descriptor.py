@@ -66,6 +66,7 @@ def test_published_weights_load_with_no_missing_or_unexpected_key():
         assert loaded["missing"] == [] and loaded["unexpected"] == [] and loaded["loaded"] == 64
 
 
+@pytest.mark.slow  # 5-11 s each: torch's reference forward pass (the export's parity)
 @needs_weights
 @pytest.mark.parametrize("family", ["3dmatch", "kitti"])
 def test_onnx_equals_a_plain_torch_forward_of_the_published_weights(desc, family):
@@ -123,6 +124,7 @@ def test_keypoint_options():
         SpinNetDescriptor(sampling="grid")
 
 
+@pytest.mark.slow  # 9 s: a full real fragment through the network twice
 @needs_fragment
 def test_rotation_invariance_on_a_real_fragment(desc):
     """3DMatch redkitchen cloud_bin_0 rotated about its sensor, the same keypoints rotated with it: the

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 import pytest
@@ -182,10 +181,9 @@ def test_voxel_downsample_deterministic_centroids():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("family", ["3dmatch", "kitti", "3dlomatch"])
-def test_default_pairs_generate_in_seconds(family):
+def test_default_pairs_are_dense_scans(family):
+    """(How long they take to generate is benchmarks/bench_synthetic.py's, not a test's.)"""
     ds = SyntheticDataset(family=family, num_pairs=2, cache_dir=None)
     for i in range(2):
-        t0 = time.perf_counter()
         pair = ds.load(i)
-        assert time.perf_counter() - t0 < 5.0
         assert len(pair.src_cloud) > 20000 and len(pair.tgt_cloud) > 20000

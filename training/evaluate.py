@@ -243,9 +243,6 @@ def synthetic_pairs(family: str, n: int, seed: int, cache_dir: str):
 def real_pairs(root: Path, ids=None):
     from fastmac_exp.datasets.user_pairs import SharedRealPairs
 
-    if not (root / "pairs.json").is_file():
-        print(f"real pairs: {root / 'pairs.json'} not found, skipping them")
-        return []
     ds = SharedRealPairs(root=root, ids=ids)
     return [ds.load(i) for i in range(len(ds))]
 
@@ -309,6 +306,11 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(
             "nothing to evaluate: give --real and/or --synthetic-pairs / --lomatch-pairs / --kitti-pairs"
         )
+    if (args.real or args.real_ids) and not (Path(args.real_root) / "pairs.json").is_file():
+        # asked for and not there: a failure before any work, not a skip and exit 0
+        print(f"evaluate: --real: {Path(args.real_root) / 'pairs.json'} not found (pass --real-root DIR)",
+              file=sys.stderr)  # fmt: skip
+        sys.exit(2)
 
     from fastmac_exp.backends import make_backend
 

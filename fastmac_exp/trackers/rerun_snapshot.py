@@ -122,17 +122,31 @@ def _rgb(style) -> tuple[float, float, float]:
     return tuple(c / 255 for c in style.color)
 
 
-def _fit_axes(ax, points: np.ndarray) -> None:
-    """Equal scale on all axes, the box shaped like the data (flat LiDAR scans stay wide), no panes."""
-    ax.set_axis_off()
-    if not len(points):
-        return
+def _box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The axes' box for these points: the central 99 % on each axis, no side under a fifth of the longest."""
     lo, hi = np.percentile(points, 0.5, axis=0), np.percentile(points, 99.5, axis=0)
     span = np.maximum(hi - lo, 0.2 * float((hi - lo).max()) + 1e-9)
     centre = (lo + hi) / 2
-    for setter, c, h in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, span / 2, strict=True):
-        setter(c - h, c + h)
-    ax.set_box_aspect(tuple(span), zoom=1.1)
+    return centre - span / 2, centre + span / 2
+
+
+def _fit_axes(ax, points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Equal scale on all axes, the box shaped like the data (flat LiDAR scans stay wide), no panes; returns
+    the box (matplotlib's 3-D axes draw points outside their limits too: _inside drops them)."""
+    ax.set_axis_off()
+    if not len(points):
+        return None
+    lo, hi = _box(points)
+    for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi, strict=True):
+        setter(a, b)
+    ax.set_box_aspect(tuple(hi - lo), zoom=1.0)
+    return lo, hi
+
+
+def _inside(points: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    if box is None:
+        return points
+    return points[((points >= box[0]) & (points <= box[1])).all(axis=1)]
 
 
 def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
@@ -143,9 +157,11 @@ def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
     drawn = []
     for sub, style in (("matches/source", SOURCE), ("matches/target", TARGET)):
         if sub in geo.clouds:
-            p = _to_z_up(_thin(geo.clouds[sub]), up)
-            ax.scatter(*p.T, s=0.3, color=_rgb(style), alpha=0.5, depthshade=False, label=style.label)
-            drawn.append(p)
+            drawn.append((_to_z_up(_thin(geo.clouds[sub]), up), style))
+    box = _fit_axes(ax, np.vstack([p for p, _ in drawn]) if drawn else np.zeros((0, 3)))
+    for p, style in drawn:
+        p = _inside(p, box)
+        ax.scatter(*p.T, s=0.3, color=_rgb(style), alpha=0.5, depthshade=False, label=style.label)
     for sub in ("matches/sampled", "matches/clique"):
         if sub not in geo.lines:
             continue
@@ -157,7 +173,6 @@ def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
                 ax.add_collection3d(
                     Line3DCollection(segs, colors=[_rgb(style)], linewidths=width, alpha=alpha)
                 )
-    _fit_axes(ax, np.vstack(drawn) if drawn else np.zeros((0, 3)))
     ax.set_title("correspondences: sampled lines by GT label, the clique")
     ax2 = fig.add_subplot(1, 2, 2, projection="3d", computed_zorder=False)
     drawn = []
@@ -171,11 +186,21 @@ def render_pair(geo: PairGeometry, out: str | Path, title: str = "") -> Path:
         if pose_name in geo.poses:
             pose = geo.poses[pose_name]
             p = p @ pose[:3, :3].T + pose[:3, 3]
-        p = _to_z_up(_thin(p), up)
+        drawn.append((_to_z_up(_thin(p), up), style))
+    # the box holds the registered clouds, and the source before registration where that does not shrink
+    # them to under half the panel (a far-away source is shown as far as the box reaches)
+    after = [p for p, style in drawn if style is not BEFORE]
+    fit = np.vstack(after) if after else np.zeros((0, 3))
+    if after and len(drawn) > len(after):
+        everything = np.vstack([p for p, _ in drawn])
+        lo, hi = _box(fit)
+        lo_all, hi_all = _box(everything)
+        if np.linalg.norm(hi_all - lo_all) <= 2.0 * np.linalg.norm(hi - lo):
+            fit = everything
+    box = _fit_axes(ax2, fit)
+    for p, style in drawn:
+        p = _inside(p, box)
         ax2.scatter(*p.T, s=0.3, color=_rgb(style), alpha=0.6, depthshade=False)
-        if style is not BEFORE:
-            drawn.append(p)
-    _fit_axes(ax2, np.vstack(drawn) if drawn else np.zeros((0, 3)))
     ax2.set_title("registration: target, source before / estimated / GT")
     shown = (INLIER, OUTLIER, CLIQUE, SOURCE, TARGET, BEFORE, ESTIMATE, GT_POSE)
     handles = [plt.Line2D([], [], color=_rgb(s), lw=3, label=s.label) for s in shown]
