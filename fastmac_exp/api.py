@@ -48,7 +48,8 @@ def register(
 
     sampler: a conf/sampler option (highpass, highpass_squared, lowpass, allpass, xyz, random, fps,
         deterministic, none) or a Sampler. ratio: the fraction it keeps, in (0, 1]; samples: a count K
-        instead (keep min(K, N); ratio is then ignored), passed on as given.
+        instead (keep min(K, N); ratio is then ignored), passed on as given; samples="auto" (or
+        ratio="auto") sizes the keep from the scores (graph-filter samplers; docs/keep_size.md).
     backend: a conf/backend option (cpp, python, turboreg, ransac, fgr, kiss_matcher), "auto" (the C++ core,
         which the install builds; the Python reference if it is missing) or a Backend.
     descriptor: for clouds, a conf/descriptor option (fpfh, fcgf, ...) or a Descriptor (None: FPFH).
@@ -59,13 +60,14 @@ def register(
         graph-filter samplers (highpass, lowpass, allpass): filter, normalize, squared, self_loops, impl
             (auto | cpp | torch | python), device (cpu | cuda), scores (auto | exact | estimate),
             estimate (a dict, or its keys anchors, min_anchors, pair_budget, pair_budget_per_node,
-            pilot_anchors, power, uniform_mix, max_tests);
+            pilot_anchors, power, uniform_mix, max_tests), keep (samples=auto's rule: a dict, or its keys
+            core_inliers, min_keep, core_share, scarce_cover, scarce_ratio);
         xyz: code, sigma, knn, impl; deterministic: bandwidth, band, max_n, max_k;
         cpp: num_threads; ransac: max_iterations, confidence, seed; fgr: iterations;
         kiss_matcher: noise_bound_gain; turboreg: max_N, tau, num_pivot, radius_nms, tau_inlier, metric,
             hard, refine_iters, num_threads;
         mac: inlier_threshold, min_clique_size, refine_iters, reduction, search (auto | bnb | enumerate),
-            max_cliques, max_nodes, max_work, enumerate_budget, time_limit_s;
+            max_cliques, max_nodes, max_work, max_product_work, enumerate_budget, time_limit_s;
         graph: kernel, alpha, tau, threshold (None = the family's table, fastmac_exp/params.py).
     An unknown or ambiguous name raises InputError naming what to write.
 
