@@ -374,7 +374,7 @@ def test_every_sweep_member_is_checked_before_the_first_starts(tmp_path):
     out = (p.stdout + p.stderr).strip()
     assert p.returncode == 2, out[-2000:]
     assert out == (
-        "sweep member 1 (ratio=1.5): ratio must be a number in (0, 1], got 1.5 (config key: ratio); "
+        "sweep member 1 (ratio=1.5): ratio must be a number in (0, 1] or auto, got 1.5 (config key: ratio); "
         "no member was started"
     )
     assert not (tmp_path / "S").exists()
