@@ -4,6 +4,7 @@ runs, the paper's numbers (studies/paper/*.csv), the prose (studies/text/*.md) a
 from __future__ import annotations
 
 import math
+import re
 import string
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,7 +17,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from fastmac_exp import plots  # noqa: E402
-from fastmac_exp.report import aggregate, load_results  # noqa: E402
+from fastmac_exp.report import aggregate, load_results, markdown_table  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -279,3 +280,33 @@ def re_te(r: pd.Series | None) -> str:
 
 def te_cell(r: pd.Series | None) -> str:
     return "–" if r is None else fnum(r["TE_cm"], 1)
+
+
+def wall_times(studies: Path) -> list[str]:
+    """The last successful run of each sweep in <studies>/run_studies.log, with its wall time."""
+    log = studies / "run_studies.log"
+    if not log.exists():
+        return []
+    done: dict[str, tuple[str, int]] = {}
+    cmd = None
+    for line in log.read_text().splitlines():
+        if m := re.match(r"\[\d\d:\d\d:\d\d\] (python .*)", line):
+            cmd = m.group(1)
+        elif (m := re.match(r"\[\d\d:\d\d:\d\d\]\s+done in (\d+) s", line)) and cmd:
+            d = re.search(r"hydra.sweep.dir=outputs/studies/(\S+)", cmd)
+            key = d.group(1) if d else cmd[:60]
+            done.pop(key, None)
+            done[key] = (cmd, int(m.group(1)))
+            cmd = None
+    rows = [[f"`{k}`", str(s)] for k, (_, s) in done.items()]
+    total = sum(s for _, s in done.values())
+    rows.append(["**total**", f"**{total} s ({total / 60:.0f} min)**"])
+    out = [markdown_table(["sweep (outputs/studies/…)", "wall time (s)"], rows, ["l", "r"]), ""]
+    cmds = [c for c, _ in done.values()]
+    note = (
+        " (logged before `dataset.limit` became the run key `limit`: write `limit=N` today)"
+        if any("dataset.limit=" in c for c in cmds)
+        else ""
+    )
+    out += [f"Commands as logged{note}:", "", "```", *cmds, "```", ""]
+    return out

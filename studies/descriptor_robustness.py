@@ -31,6 +31,7 @@ from studies.common import (
     te_cell,
     text,
     verbatim,
+    wall_times,
 )
 
 PANELS = {
@@ -153,7 +154,7 @@ def render(page: Page) -> None:
             full = f"Descriptor robustness, {title}: FastMAC (high-pass) on every descriptor"
             page.figure(page.line_figure(part, name, full), f"descriptor robustness, {title}")
     page.add(*text("descriptor_robustness_findings"))  # by hand, from the tables of the last run
-    page.add(*verbatim("descriptor_robustness_buffer"), "")  # training/evaluate.py --real, by hand
+    page.add(*verbatim("descriptor_robustness_buffer"), "")  # descriptors/evaluate.py --real, by hand
 
 
 def splice(studies: Path, docs: Path) -> None:
@@ -169,8 +170,6 @@ def splice(studies: Path, docs: Path) -> None:
     md = (docs / "results.md").read_text()
     start, end = md.index("## 5. "), md.index("## 6. ")
     md = md[:start] + "\n".join(page.md).rstrip() + "\n\n" + md[end:]
-    from studies.make_results import wall_times
-
     new = "\n".join(wall_times(studies)).splitlines()
     rows = [ln for ln in new if ln.startswith("| `descriptor_robustness_")]
     cmds = [ln for ln in new if ln.startswith("python run.py") and "descriptor_robustness_" in ln]

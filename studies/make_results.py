@@ -17,12 +17,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import shutil
 import subprocess
 from pathlib import Path
 
-from fastmac_exp.report import markdown_table
 from studies import (
     descriptor_robustness,
     filter_ablation,
@@ -33,37 +31,7 @@ from studies import (
     stochastic,
     time_profile,
 )
-from studies.common import REPO, Page, text
-
-
-def wall_times(studies: Path) -> list[str]:
-    """The last successful run of each sweep in <studies>/run_studies.log, with its wall time."""
-    log = studies / "run_studies.log"
-    if not log.exists():
-        return []
-    done: dict[str, tuple[str, int]] = {}
-    cmd = None
-    for line in log.read_text().splitlines():
-        if m := re.match(r"\[\d\d:\d\d:\d\d\] (python .*)", line):
-            cmd = m.group(1)
-        elif (m := re.match(r"\[\d\d:\d\d:\d\d\]\s+done in (\d+) s", line)) and cmd:
-            d = re.search(r"hydra.sweep.dir=outputs/studies/(\S+)", cmd)
-            key = d.group(1) if d else cmd[:60]
-            done.pop(key, None)
-            done[key] = (cmd, int(m.group(1)))
-            cmd = None
-    rows = [[f"`{k}`", str(s)] for k, (_, s) in done.items()]
-    total = sum(s for _, s in done.values())
-    rows.append(["**total**", f"**{total} s ({total / 60:.0f} min)**"])
-    out = [markdown_table(["sweep (outputs/studies/…)", "wall time (s)"], rows, ["l", "r"]), ""]
-    cmds = [c for c, _ in done.values()]
-    note = (
-        " (logged before `dataset.limit` became the run key `limit`: write `limit=N` today)"
-        if any("dataset.limit=" in c for c in cmds)
-        else ""
-    )
-    out += [f"Commands as logged{note}:", "", "```", *cmds, "```", ""]
-    return out
+from studies.common import REPO, Page, text, wall_times
 
 
 def machine() -> str:

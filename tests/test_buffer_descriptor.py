@@ -1,9 +1,9 @@
-"""BUFFER through ONNX (training/BUFFER_MODEL_CARD.md): the published weights load with no missing or
+"""BUFFER through ONNX (descriptors/buffer/MODEL_CARD.md): the published weights load with no missing or
 unexpected key, the shipped models compute what a torch forward pass of those weights computes, the numpy
 preprocessing equals brute force, the descriptor is rotation invariant, and the front end plugs in.
 
 Without ../shared the shipped models are still checked against the torch reference's outputs frozen at
-export time (training/buffer_export.json); only the checks that read the .pth files or a real fragment
+export time (descriptors/buffer/export.json); only the checks that read the .pth files or a real fragment
 skip.
 """
 
@@ -40,7 +40,7 @@ from .test_onnx_descriptor import random_rotation, toy_room
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO.parent / "shared" / "models" / "buffer"
 FRAGMENT = REPO.parent / "shared" / "data" / "teaser_3dmatch_redkitchen" / "cloud_bin_0.ply"
-EXPORT = json.loads((REPO / "training" / "buffer_export.json").read_text())
+EXPORT = json.loads((REPO / "descriptors" / "buffer" / "export.json").read_text())
 needs_weights = pytest.mark.skipif(
     not (WEIGHTS / "3dmatch" / "Desc_best.pth").is_file(), reason=f"BUFFER weights not at {WEIGHTS}"
 )
@@ -86,7 +86,7 @@ def test_shipped_models_are_the_recorded_export(desc):
 
 def test_shipped_models_reproduce_the_torch_reference_outputs(desc):
     """onnxruntime on fixed inputs == the torch reference's outputs recorded when the .pth was converted."""
-    from training.buffer_export import golden_cloud, golden_grouped
+    from descriptors.buffer.export import golden_cloud, golden_grouped
 
     x = golden_grouped()
     for fam, rec in EXPORT["families"].items():
@@ -106,7 +106,7 @@ def test_shipped_models_reproduce_the_torch_reference_outputs(desc):
 def test_published_weights_load_with_no_missing_or_unexpected_key():
     import torch
 
-    from training.buffer_nets import DescReference, RefReference, load_published
+    from descriptors.buffer.nets import DescReference, RefReference, load_published
 
     for fam in ("3dmatch", "kitti"):
         for prefix, cls, n in (("Ref", RefReference, 141), ("Desc", DescReference, 58)):
@@ -123,8 +123,8 @@ def test_published_weights_load_with_no_missing_or_unexpected_key():
 def test_onnx_equals_a_torch_forward_pass_of_the_published_weights(desc):
     import torch
 
-    from training.buffer_export import golden_cloud, golden_grouped, random_grouped, ref_batch_reference
-    from training.buffer_nets import DescReference, RefReference, load_published
+    from descriptors.buffer.export import golden_cloud, golden_grouped, random_grouped, ref_batch_reference
+    from descriptors.buffer.nets import DescReference, RefReference, load_published
 
     for fam in ("3dmatch", "kitti"):
         ref = DescReference()
@@ -150,7 +150,7 @@ def test_onnx_equals_a_torch_forward_pass_of_the_published_weights(desc):
 
 def brute_force_cells(aligned: np.ndarray, params: BufferParams) -> np.ndarray:
     """Upstream's sphere_query + grouping, one cell at a time (pointnet2 ball_query semantics)."""
-    from training.buffer_nets import cell_centres
+    from descriptors.buffer.nets import cell_centres
 
     centres = cell_centres().astype(np.float32)
     r = np.float32(params.delta / params.rad_n)
@@ -435,7 +435,7 @@ def test_mutual_matching_describes_every_keypoint():
     assert d.timings_log[0]["keypoints"] == n_src and len(corr) <= 20
 
 
-QUANT = json.loads((REPO / "training" / "buffer_quantize.json").read_text())
+QUANT = json.loads((REPO / "descriptors" / "buffer" / "quantize.json").read_text())
 
 
 def test_int8_models_are_the_recorded_quantisation_of_the_shipped_models():
@@ -477,7 +477,7 @@ def test_fuse_requantize_keeps_what_the_network_computes(tmp_path):
     from onnx import TensorProto, helper, numpy_helper
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
-    from training.buffer_quantize import fuse_requantize
+    from descriptors.buffer.quantize import fuse_requantize
 
     rng = np.random.default_rng(0)
     init = [
@@ -562,7 +562,7 @@ def test_fuse_requantize_keeps_what_the_network_computes(tmp_path):
 
 def test_int8_descriptors_stay_close_to_float32(room):
     """Quantised descriptors point the same way as the float32 ones (measured mean cosine 0.998 on real
-    indoor keypoints, training/buffer_quantize.json) and keep the rotation invariance."""
+    indoor keypoints, descriptors/buffer/quantize.json) and keep the rotation invariance."""
     kp = voxel_down(room, 0.15)
     fl = BufferDescriptor(threads=1, progress=False)
     q = BufferDescriptor(threads=1, progress=False, precision="int8")
@@ -582,5 +582,5 @@ def test_precision_is_checked():
     wrong = BufferDescriptor(precision="int8", model_3dmatch_int8=SHIPPED["3dmatch"], progress=False)
     with pytest.raises(InputError, match="float32"):
         wrong.load("3dmatch")
-    with pytest.raises(InputError, match="buffer_quantize"):
+    with pytest.raises(InputError, match="descriptors/buffer/quantize.py"):
         BufferDescriptor(precision="int8", model_kitti_int8="nowhere_int8.onnx").load("kitti")

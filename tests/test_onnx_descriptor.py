@@ -153,10 +153,10 @@ def test_wrong_patch_size_model(tmp_path):
 
 
 def test_missing_model_path(tmp_path):
-    with pytest.raises(InputError, match="not found.*training.train"):
+    with pytest.raises(InputError, match=r"not found.*descriptors/fcgf_lite/train\.py"):
         OnnxDescriptor(str(tmp_path / "nope.onnx"))
     with pytest.raises(InputError, match="not found"):
-        OnnxDescriptor("training/does_not_exist.onnx")
+        OnnxDescriptor("descriptors/does_not_exist.onnx")
 
 
 def test_relative_model_path_from_other_cwd(tmp_path, monkeypatch):

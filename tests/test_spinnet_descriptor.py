@@ -1,4 +1,4 @@
-"""SpinNet through ONNX (training/SPINNET_MODEL_CARD.md): the published weights load with no missing or
+"""SpinNet through ONNX (descriptors/spinnet/MODEL_CARD.md): the published weights load with no missing or
 unexpected key, the shipped models compute what a plain torch forward of those weights computes (1e-5), the
 C++ grouping equals brute force, the descriptor is rotation invariant on a real fragment, and the real indoor
 pairs' inlier ratios are at least twice FPFH's (slow). Checks that need torch, the weights or ../shared/data
@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 WEIGHTS = SHARED / "models" / "spinnet"
 FRAGMENT = SHARED / "data" / "teaser_3dmatch_redkitchen" / "cloud_bin_0.ply"
-EXPORT = json.loads((REPO / "training" / "spinnet_export.json").read_text())
+EXPORT = json.loads((REPO / "descriptors" / "spinnet" / "export.json").read_text())
 needs_weights = pytest.mark.skipif(
     not (WEIGHTS / "3DMatch_best.pkl").is_file(), reason=f"SpinNet weights not at {WEIGHTS}"
 )
@@ -59,7 +59,7 @@ def test_shipped_models_are_the_recorded_export():
 @needs_weights
 def test_published_weights_load_with_no_missing_or_unexpected_key():
     pytest.importorskip("torch")
-    from training.spinnet_export import reference
+    from descriptors.spinnet.export import reference
 
     for fam in ("3dmatch", "kitti"):
         _, loaded = reference(fam, WEIGHTS)
@@ -74,7 +74,7 @@ def test_onnx_equals_a_plain_torch_forward_of_the_published_weights(desc, family
     onnxruntime, L2 norm) against upstream's computation in torch (brute-force ball query, masks,
     var_to_invar, the network with its BatchNorm modules and concatenated padding)."""
     torch = pytest.importorskip("torch")
-    from training.spinnet_export import check_patches, reference
+    from descriptors.spinnet.export import check_patches, reference
 
     ref, _ = reference(family, WEIGHTS)
     aligned, _ = check_patches(family, n=2, seed=8)

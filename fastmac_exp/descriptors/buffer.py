@@ -1,8 +1,8 @@
 """BUFFER's learned descriptor (Ao et al., CVPR 2023) through onnxruntime: `descriptor=buffer`.
 
-The published 3DMatch and KITTI weights, converted by `training/buffer_export.py` into
+The published 3DMatch and KITTI weights, converted by `descriptors/buffer/export.py` into
 `fastmac_exp/models/buffer_<family>_desc.onnx` (+ `buffer_3dmatch_ref.onnx`); model card
-`training/BUFFER_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D preprocessing + onnxruntime (CPU);
+`descriptors/buffer/MODEL_CARD.md`. Runtime: numpy/scipy/Open3D preprocessing + onnxruntime (CPU);
 torch is never imported here.
 
 Describing the keypoints of one cloud (lengths are BUFFER's, in metres, times `scale`; `scale` = the pair's
@@ -67,7 +67,7 @@ SHIPPED = {
     "3dmatch": "models/buffer_3dmatch_desc.onnx",  # relative to the package (fastmac_exp/models/)
     "kitti": "models/buffer_kitti_desc.onnx",
 }
-SHIPPED_INT8 = {  # training/buffer_quantize.py
+SHIPPED_INT8 = {  # descriptors/buffer/quantize.py
     "3dmatch": "models/buffer_3dmatch_desc_int8.onnx",
     "kitti": "models/buffer_kitti_desc_int8.onnx",
 }
@@ -548,9 +548,10 @@ class BufferDescriptor(FeatureDescriptor):
     the shuffles (upstream shuffles at random; fixed here so a cloud is always described the same way);
     `progress`: a progress bar over each cloud's keypoints. `axis`: None = the model's (`ref` for the
     3DMatch model, `none` for KITTI); `pca` = upstream's own fallback (cal_Z_axis, the patch's normal),
-    kept for comparison (BUFFER_MODEL_CARD.md: the Ref axis is better). `precision`: "float32" (the
-    exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`: the Desc convolutions quantised
-    by training/buffer_quantize.py, about 3x faster; rows labelled `buffer_int8`). `cache_clouds`: how
+    kept for comparison (descriptors/buffer/MODEL_CARD.md: the Ref axis is better). `precision`:
+    "float32" (the exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`: the Desc
+    convolutions quantised by descriptors/buffer/quantize.py, about 3x faster; rows labelled
+    `buffer_int8`). `cache_clouds`: how
     many clouds' preparation and described keypoints are kept in memory (0: none), so a cloud shared by
     pairs is described once. A pair describes only the source keypoints its correspondences keep (one-way
     matching: the cap's random subset of the source keypoints, drawn as before) and every target
@@ -666,7 +667,7 @@ class BufferDescriptor(FeatureDescriptor):
             return resolve_model_path(named)
         except InputError as exc:
             raise InputError(
-                f"{exc}; the int8 BUFFER models are made by `python -m training.buffer_quantize`"
+                f"{exc}; the int8 BUFFER models are made by `python descriptors/buffer/quantize.py`"
             ) from exc
 
     def load(self, which: str) -> BufferModel:

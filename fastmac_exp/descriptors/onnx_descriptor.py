@@ -1,10 +1,11 @@
 """Learned-descriptor front end: multi-scale local patches in a local reference frame (LRF), embedded by
 an ONNX model (the shipped `fastmac_exp/models/fcgf_lite.onnx`, a small network trained here, not the
-published FCGF; its model card is training/MODEL_CARD.md). BUFFER's published models have their own front end
-(fastmac_exp/descriptors/buffer.py, `descriptor=buffer`).
+published FCGF; its model card is descriptors/fcgf_lite/MODEL_CARD.md). BUFFER's published models have
+their own front end (fastmac_exp/descriptors/buffer.py, `descriptor=buffer`).
 
 Runtime path: numpy/scipy preprocessing + onnxruntime inference; torch is never imported here (the
-training recipe `training/train.py` imports this preprocessing, so training and runtime cannot drift).
+training recipe `descriptors/fcgf_lite/train.py` imports this preprocessing, so training and runtime cannot
+drift).
 
 Preprocessing of one cloud (lengths in metres; `voxel` = the pair's voxel size unless configured):
 
@@ -125,7 +126,7 @@ def resolve_model_path(model: str | os.PathLike) -> Path:
     tried = [str(c.resolve()) for c in candidates(model)]
     raise InputError(
         f"ONNX descriptor model {str(model)!r} not found (tried {' and '.join(tried)}). Train and export "
-        f"it with `python -m training.train`, or set descriptor.model to an existing .onnx file"
+        f"it with `python descriptors/fcgf_lite/train.py`, or set descriptor.model to an existing .onnx file"
     )
 
 

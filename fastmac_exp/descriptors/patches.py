@@ -1,6 +1,6 @@
 """Learned-descriptor preprocessing (numpy / scipy): keypoints, normals, local reference frames and the
 multi-scale LRF patches the ONNX models embed. Shared by the runtime front end (onnx_descriptor.py) and
-the training recipe (training/train.py), so that training and runtime cannot drift."""
+the training recipe (descriptors/fcgf_lite/train.py), so that training and runtime cannot drift."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """SpinNet's learned descriptor (Ao, Hu et al., CVPR 2021) through onnxruntime: `descriptor=spinnet`.
 
 The published 3DMatch and KITTI weights (QingyongHu/SpinNet@5581e7d1, ../shared/models/spinnet), converted
-by `training/spinnet_export.py` into `fastmac_exp/models/spinnet_<family>.onnx`; model card
-`training/SPINNET_MODEL_CARD.md`. Runtime: numpy/scipy/Open3D + the C++ core's grouping + onnxruntime (CPU
+by `descriptors/spinnet/export.py` into `fastmac_exp/models/spinnet_<family>.onnx`; model card
+`descriptors/spinnet/MODEL_CARD.md`. Runtime: numpy/scipy/Open3D + the C++ core's grouping + onnxruntime (CPU
 unless a GPU provider is asked for); torch is never imported here.
 
 Describing the keypoints of one cloud (lengths are SpinNet's, in metres, times `scale` = the pair's voxel /
@@ -22,7 +22,7 @@ the model's reference voxel, 1 on the real indoor and LiDAR pairs):
    RodsRotatFormula); the KITTI model keeps the sensor frame, as upstream;
 5. cells (C++ `spinnet_group_cells`): 9 radial x 40 elevation x 80 azimuth cells (KITTI: 9 x 30 x 60), each
    the first 30 patch points within `voxel_r` (0.04 / 0.3 m) of its centre, as offsets from the centre in
-   the cell's azimuth frame (upstream sphere_query + var_to_invar, training/spinnet_nets.py);
+   the cell's azimuth frame (upstream sphere_query + var_to_invar, descriptors/spinnet/nets.py);
    -> the ONNX model -> 32 values, L2-normalised here.
 
 Model contract (checked when a model is opened): one float32 input `(M, cells * samples, 3)` with M dynamic,
@@ -241,7 +241,7 @@ class SpinNetDescriptor(BufferDescriptor):
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
     as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
     many keypoints a cloud (None: the model's default, 400 indoors / 1,000 for KITTI; 0 = every voxel
-    keypoint); each costs ~0.05-0.15 s of one CPU core (training/SPINNET_MODEL_CARD.md). `sampling`: how
+    keypoint); each costs ~0.05-0.15 s of one CPU core (descriptors/spinnet/MODEL_CARD.md). `sampling`: how
     they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None: the model's, fps
     indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
     model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,

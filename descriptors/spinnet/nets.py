@@ -25,7 +25,7 @@ Upstream's forward on a patch `(M, P, 3)` (P = 2048 points within des_r of the k
   strict=True; `forward_cells` runs steps 4-5 from the grouped cells, `forward_aligned` runs 2-5 from aligned
   patches by brute force in torch (the ball query, the masks and var_to_invar as upstream writes them).
 - `SpinNetExport`: steps 4-5 for ONNX (BatchNorm folded into the convolutions, the circular padding by
-  concatenation, the elevation padding inside Conv); `training/spinnet_export.py` exports it.
+  concatenation, the elevation padding inside Conv); `descriptors/spinnet/export.py` exports it.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ Registration", CVPR 2023 (code: aosheng1996/BUFFER). Written here from the publi
 - `RefExport`, `DescExport`: the same functions rewritten for ONNX and speed (BatchNorm folded into the
   preceding linear map, vectors laid out (..., 3, C) so every linear map is one MatMul, the first 3-D
   convolution as a 2-D one over radius x channel, zero padding of the elevation axis inside Conv);
-  `training/buffer_export.py` exports these and checks onnxruntime against the references.
+  `descriptors/buffer/export.py` exports these and checks onnxruntime against the references.
 
 Runtime code never imports this module (torch is needed only to convert).
 

@@ -2,9 +2,9 @@
 98f33b2 (before the second round of issue 31), and today's, side by side in one run (run from git), and the
 inlier ratios on the real pairs.
 
-    python benchmarks/bench_buffer.py              # speed: a 3DMatch fragment and a KITTI scan, 3 repeats
-    python benchmarks/bench_buffer.py --inliers    # + IR on every real pair, float32 and int8
-    python benchmarks/bench_buffer.py --json out.json --reps 5 --threads 1 [--skip-before]
+    python descriptors/buffer/bench.py              # speed: a 3DMatch fragment and a KITTI scan, 3 repeats
+    python descriptors/buffer/bench.py --inliers    # + IR on every real pair, float32 and int8
+    python descriptors/buffer/bench.py --json out.json --reps 5 --threads 1 [--skip-before]
 
 Speed (needs ../shared/data): per fragment, the target cloud of 3dm_redkitchen_4_to_0_teaser_fullres
 (5,208 keypoints) and of kitti00_95_to_94 (17,355 keypoints), and per pair (both clouds, as a run
@@ -17,8 +17,8 @@ preparation runs in a second thread beside onnxruntime, so CPU > wall), and the 
 The machine is shared: only the ratios within one run mean much.
 
 Inliers (`--inliers`): every pair of ../shared/data/pairs.json, correspondences drawn with seed 0 as
-training/evaluate.py does; IR of float32 now (equal to before: tests/test_buffer_descriptor.py) and of
-int8, against training/evaluation_real.json's BUFFER column (the code before).
+descriptors/evaluate.py does; IR of float32 now (equal to before: tests/test_buffer_descriptor.py) and of
+int8, against descriptors/evaluation_real.json's BUFFER column (the code before).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
@@ -153,7 +153,7 @@ def speed(reps: int, threads: int, skip_before: bool = False) -> dict:
 def inliers(threads: int) -> dict:
     from fastmac_exp.datasets.user_pairs import SharedRealPairs
 
-    before = json.loads((REPO / "training" / "evaluation_real.json").read_text())["real"]["rows"]
+    before = json.loads((REPO / "descriptors" / "evaluation_real.json").read_text())["real"]["rows"]
     before = {r["pair"]: r["descriptors"]["buffer"]["ir"] for r in before}
     ds = SharedRealPairs(root=SHARED)
     variants = {

@@ -1,19 +1,19 @@
 """Train and export the learned local descriptor `fastmac_exp/models/fcgf_lite.onnx` (see MODEL_CARD.md).
 
-    cd /work/main && PYTHONPATH=. python -m training.train     # the shipped model: ~22 min on 1 thread
-    PYTHONPATH=. python -m training.train --minutes 2 --pairs 20 --out /tmp/tiny.onnx   # a smoke run
+    cd /work/main && python descriptors/fcgf_lite/train.py     # the shipped model: ~22 min on 1 thread
+    python descriptors/fcgf_lite/train.py --minutes 2 --pairs 20 --out /tmp/tiny.onnx   # a smoke run
 
-Writes the model (--out), `loss_curve.png` and `<out stem>.train.json` next to it (in training/ for the
-shipped model) (arguments, timings,
-validation curve). Recipe: 120 synthetic indoor pairs (SyntheticDataset family 3dmatch, training seed
-1000; validation seed 2000; training/evaluate.py uses seed 0) -> each cloud rotated by a uniform
-random SO(3) rotation (the GT follows) -> keypoints by voxel downsampling at 0.05 m and their two-scale
-LRF patches (fastmac_exp.descriptors.onnx_descriptor: the runtime's own preprocessing) -> positives =
-source/target keypoints within 0.75 voxel of each other under GT -> PatchNet (two-stage PointNet, 32-D
-unit-norm output) trained with FCGF's hardest-contrastive loss over in-pair negatives (128 positives +
-384 random target keypoints a step, candidates within 0.1 m of the true match are not negatives) ->
-the checkpoint with the best validation inlier ratio -> ONNX export (opset 17, dynamic batch axis) with
-the preprocessing parameters as metadata, checked against torch to 1e-4 with onnxruntime.
+Writes the model (--out), `loss_curve.png` and `<out stem>.train.json` next to it (in descriptors/fcgf_lite/
+for the shipped model) (arguments, timings, validation curve). Recipe: 120 synthetic indoor pairs
+(SyntheticDataset family 3dmatch, training seed 1000; validation seed 2000; descriptors/evaluate.py uses
+seed 0) -> each cloud rotated by a uniform random SO(3) rotation (the GT follows) -> keypoints by voxel
+downsampling at 0.05 m and their two-scale LRF patches (fastmac_exp.descriptors.onnx_descriptor: the
+runtime's own preprocessing) -> positives = source/target keypoints within 0.75 voxel of each other under GT
+-> PatchNet (two-stage PointNet, 32-D unit-norm output) trained with FCGF's hardest-contrastive loss over
+in-pair negatives (128 positives + 384 random target keypoints a step, candidates within 0.1 m of the true
+match are not negatives) -> the checkpoint with the best validation inlier ratio -> ONNX export (opset 17,
+dynamic batch axis) with the preprocessing parameters as metadata, checked against torch to 1e-4 with
+onnxruntime.
 
 Everything random is seeded (--seed); training stops at a wall-clock budget (--minutes), so the step
 count depends on the machine: pass --steps N for a run that is reproducible step for step.
@@ -31,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
 DEFAULT_OUT = REPO / "fastmac_exp" / "models" / "fcgf_lite.onnx"
-if str(REPO) not in sys.path:  # `python training/train.py` from anywhere
+if str(REPO) not in sys.path:  # `python descriptors/fcgf_lite/train.py` from anywhere
     sys.path.insert(0, str(REPO))
 
 import torch  # noqa: E402
@@ -45,7 +46,7 @@ from fastmac_exp.descriptors.patches import FEATURES, PatchParams, cloud_patches
 
 TRAIN_SEED = 1000
 VAL_SEED = 2000
-EVAL_SEED = 0  # training/evaluate.py; never used for training or model selection
+EVAL_SEED = 0  # descriptors/evaluate.py; never used for training or model selection
 VOXEL = 0.05
 INLIER_THRESHOLD = 0.1
 
@@ -351,8 +352,8 @@ def main(argv: list[str] | None = None) -> None:
         support_factor2=args.support_factor2,
     )
     out = Path(args.out)
-    # the shipped model goes into the package; its records (curve, .train.json) stay in training/
-    records = REPO / "training" if out.resolve() == DEFAULT_OUT.resolve() else out.parent
+    # the shipped model goes into the package; its records (curve, .train.json) stay beside this script
+    records = HERE if out.resolve() == DEFAULT_OUT.resolve() else out.parent
     curve = Path(args.curve) if args.curve else records / "loss_curve.png"
 
     train = load_pairs(args.pairs, TRAIN_SEED, params, args.cache_dir, rng, "training pairs")

@@ -1,7 +1,7 @@
 """INT8 versions of the shipped BUFFER Desc models (`descriptor.precision=int8`), by onnxruntime's static
 quantisation of the 3-D/2-D convolutions.
 
-    PYTHONPATH=. python -m training.buffer_quantize           # ~2 min; writes fastmac_exp/models/*_int8.onnx
+    python descriptors/buffer/quantize.py           # ~2 min; writes fastmac_exp/models/*_int8.onnx
 
 Per family: the float32 Desc model `fastmac_exp/models/buffer_<family>_desc.onnx` -> onnxruntime's
 `quant_pre_process` -> `quantize_static` (QOperator format, the Conv nodes only, weights int8 per output
@@ -11,7 +11,8 @@ that no evaluation uses (`--seed`, default 1000; no real pair and no GT is used)
 metadata copied over, plus `fastmac.precision = int8` and the float model's sha256. The point MLP, the
 attention pool and the normalisation stay float32. Checked on keypoints of a further synthetic pair
 (not calibrated on): cosine of the int8 and float32 descriptors, and the share of keypoints whose
-nearest float32 descriptor (among the pair's other cloud's) is unchanged. Record: `buffer_quantize.json`.
+nearest float32 descriptor (among the pair's other cloud's) is unchanged.
+Record: `quantize.json` beside this script.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
@@ -296,7 +298,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--calib-pairs", type=int, default=2)
     ap.add_argument("--calib-keypoints", type=int, default=128, help="per cloud")
     ap.add_argument("--out", default=str(MODELS))
-    ap.add_argument("--json", default=str(REPO / "training" / "buffer_quantize.json"))
+    ap.add_argument("--json", default=str(HERE / "quantize.json"))
     ap.add_argument(
         "--fuse-shipped",
         action="store_true",

@@ -1,14 +1,14 @@
 """Convert SpinNet's published weights into the shipped ONNX models and check the conversion.
 
-    cd /work/main && PYTHONPATH=. python -m training.spinnet_export            # ~2 min, 1 thread
-    PYTHONPATH=. python -m training.spinnet_export --weights /path/to/spinnet --out /tmp/spinnet
+    cd /work/main && python descriptors/spinnet/export.py            # ~2 min, 1 thread
+    python descriptors/spinnet/export.py --weights /path/to/spinnet --out /tmp/spinnet
 
 Reads `<weights>/{3DMatch,KITTI}_best.pkl` (default `<repo>/../shared/models/spinnet`, copied from
-QingyongHu/SpinNet@5581e7d1, see its README and training/SPINNET_MODEL_CARD.md) and writes
-`spinnet_3dmatch.onnx`, `spinnet_kitti.onnx` (into fastmac_exp/models/) and `training/spinnet_export.json`
+QingyongHu/SpinNet@5581e7d1, see its README and descriptors/spinnet/MODEL_CARD.md) and writes
+`spinnet_3dmatch.onnx`, `spinnet_kitti.onnx` (into fastmac_exp/models/) and `descriptors/spinnet/export.json`
 (checksums, parameters, the checks' numbers).
 
-Steps: load each state dict into training/spinnet_nets.py's `SpinNetReference` with strict=True -> fold
+Steps: load each state dict into descriptors/spinnet/nets.py's `SpinNetReference` with strict=True -> fold
 into `SpinNetExport` -> torch.onnx.export (opset 17, the keypoint count dynamic) -> checks on real patches
 (redkitchen cloud_bin_0 for 3DMatch, KITTI 00 frame 94 for KITTI; seeded random patches when absent):
 (a) the C++ grouping (`spinnet_group_cells`) against the torch brute-force ball query (equal), (b) the
@@ -29,14 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch  # noqa: E402
 
+from descriptors.spinnet.nets import SpinNetExport, SpinNetReference, load_published, patch_flops  # noqa: E402
 from fastmac_exp.descriptors.spinnet import SpinNetParams, grid_for, group_cells  # noqa: E402
-from training.spinnet_nets import SpinNetExport, SpinNetReference, load_published, patch_flops  # noqa: E402
 
 UPSTREAM = "QingyongHu/SpinNet"
 UPSTREAM_COMMIT = "5581e7d184bc3b4d525d5b5e58777ea04dfdc9ab"
@@ -120,7 +121,7 @@ def export_family(family: str, weights: Path, out: Path, tol: float) -> dict:
     del model.metadata_props[:]
     for k, v in meta.items():
         model.metadata_props.add(key=k, value=str(v))
-    model.doc_string = f"SpinNet descriptor ({family} weights), converted by training/spinnet_export.py"
+    model.doc_string = f"SpinNet descriptor ({family} weights), converted by descriptors/spinnet/export.py"
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
 
@@ -172,7 +173,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", type=Path, default=SHARED_WEIGHTS)
     ap.add_argument("--out", type=Path, default=REPO / "fastmac_exp" / "models")
-    ap.add_argument("--records", type=Path, default=REPO / "training")
+    ap.add_argument("--records", type=Path, default=HERE)
     ap.add_argument("--tolerance", type=float, default=1e-5)
     ap.add_argument("--family", choices=sorted(PARAMS), action="append")
     args = ap.parse_args(argv)
@@ -182,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
     for fam in args.family or sorted(PARAMS):
         record["families"][fam] = export_family(fam, args.weights, args.out, args.tolerance)
         print(json.dumps(record["families"][fam], indent=1, default=str))
-    (args.records / "spinnet_export.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
+    (args.records / "export.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
 
 
 if __name__ == "__main__":

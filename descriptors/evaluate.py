@@ -1,12 +1,12 @@
 """Evaluate the descriptors on the same keypoints (FPFH, fcgf_lite, BUFFER), then MAC and FastMAC on each.
 
-    cd /work/main && PYTHONPATH=. python -m training.evaluate --real \\
-        --json training/evaluation_real.json          # every pair of ../shared/data (BUFFER_MODEL_CARD.md)
-    PYTHONPATH=. python -m training.evaluate --synthetic-pairs 20 --lomatch-pairs 20 \\
-        --descriptors fcgf_lite fpfh --json training/evaluation.json   # fcgf_lite's card (MODEL_CARD.md)
-    PYTHONPATH=. python -m training.evaluate --synthetic-pairs 10 --kitti-pairs 10 --descriptors buffer \\
+    cd /work/main && python descriptors/evaluate.py --real \\
+        --json descriptors/evaluation_real.json          # every pair of ../shared/data (buffer/MODEL_CARD.md)
+    python descriptors/evaluate.py --synthetic-pairs 20 --lomatch-pairs 20 \\
+        --descriptors fcgf_lite fpfh --json descriptors/fcgf_lite/evaluation.json   # fcgf_lite/MODEL_CARD.md
+    python descriptors/evaluate.py --synthetic-pairs 10 --kitti-pairs 10 --descriptors buffer \\
         --thresholds 0.85 0.95 0.99 0.999                  # graph-threshold check on held-out synthetic pairs
-    PYTHONPATH=. python -m training.evaluate --speed    # BUFFER seconds per fragment, 1 and 2 threads
+    python descriptors/evaluate.py --speed    # BUFFER seconds per fragment, 1 and 2 threads
 
 Real pairs: every entry of <repo>/../shared/data/pairs.json, loaded by `SharedRealPairs` with its rules
 (indoor: 3DMatch/3DLoMatch family, voxel 0.05 m, inlier 0.1 m, RE 15 deg / TE 0.3 m; outdoor: KITTI,

@@ -1,6 +1,6 @@
-"""SpinNet's cost on a CPU and its rotation invariance, for training/SPINNET_MODEL_CARD.md.
+"""SpinNet's cost on a CPU and its rotation invariance, for descriptors/spinnet/MODEL_CARD.md.
 
-    cd /work/main && PYTHONPATH=. python -m training.bench_spinnet --json training/spinnet_speed.json
+    cd /work/main && python descriptors/spinnet/bench.py --json descriptors/spinnet/speed.json
 
 Describes a real 3DMatch fragment (redkitchen cloud_bin_0, 400 farthest-point keypoints, the default) and a
 KITTI scan (seq 00 frame 94, 1,000 random keypoints, the default) from an empty cache with onnxruntime on
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 

@@ -1,18 +1,19 @@
 """Convert BUFFER's published weights into the shipped ONNX models and check the conversion.
 
-    cd /work/main && PYTHONPATH=. python -m training.buffer_export          # ~1 min, 1 thread
-    PYTHONPATH=. python -m training.buffer_export --weights /path/to/buffer --out /tmp/buffer
+    cd /work/main && python descriptors/buffer/export.py          # ~1 min, 1 thread
+    python descriptors/buffer/export.py --weights /path/to/buffer --out /tmp/buffer
 
 Reads `<weights>/{3dmatch,kitti}/{Ref,Desc}_best.pth` (default `<repo>/../shared/models/buffer`, BUFFER's
-files from aosheng1996/BUFFER@6f905699, see its README and training/BUFFER_MODEL_CARD.md) and writes
+files from aosheng1996/BUFFER@6f905699, see its README and descriptors/buffer/MODEL_CARD.md) and writes
 
 - `buffer_3dmatch_ref.onnx`: the Ref network (`Ref.*` of 3dmatch/Ref_best.pth);
 - `buffer_3dmatch_desc.onnx`: the Desc network (`Desc.*` of 3dmatch/Desc_best.pth), axis-aligned patches;
 - `buffer_kitti_desc.onnx`: the KITTI Desc network (`Desc.*` of kitti/Desc_best.pth); upstream keeps the
   LiDAR's z axis for KITTI, so no Ref model is needed (kitti/Ref_best.pth is checked, not exported);
-- `buffer_export.json`: checksums of every input and output, the neighbour limits, the checks' numbers.
+- `export.json` (beside this script): checksums of every input and output, the neighbour limits, the
+  checks' numbers.
 
-Steps: load the tensors into training/buffer_nets.py's reference modules with strict=True (no missing
+Steps: load the tensors into descriptors/buffer/nets.py's reference modules with strict=True (no missing
 or unexpected key) -> calibrate the Ref's neighbour limits with upstream's rule (calibrate_neighbors:
 per layer the 80th percentile of the neighbour counts, counts of 34 = ceil(4/3 pi 2^3) and more left out)
 on the 3DMatch fragment redkitchen cloud_bin_0 (the first fragment of upstream's first test pair; its
@@ -33,12 +34,20 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import torch  # noqa: E402
 
+from descriptors.buffer.nets import (  # noqa: E402
+    DescExport,
+    DescReference,
+    RefExport,
+    RefReference,
+    load_published,
+)
 from fastmac_exp.descriptors.buffer import (  # noqa: E402
     REF_INPUTS,
     BufferParams,
@@ -49,13 +58,6 @@ from fastmac_exp.descriptors.buffer import (  # noqa: E402
     oriented_normals,
     radius_neighbors,
     ref_inputs,
-)
-from training.buffer_nets import (  # noqa: E402
-    DescExport,
-    DescReference,
-    RefExport,
-    RefReference,
-    load_published,
 )
 
 UPSTREAM = "aosheng1996/BUFFER"
@@ -388,8 +390,8 @@ def main(argv: list[str] | None = None) -> None:
         record["families"][fam] = export_family(fam, weights, out, calib, limits, args.tolerance)
         print(json.dumps(record["families"][fam], indent=1, default=str))
     record["seconds"] = round(time.perf_counter() - t0, 1)
-    records = REPO / "training" if out.resolve() == (REPO / "fastmac_exp" / "models").resolve() else out
-    (records / "buffer_export.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
+    records = HERE if out.resolve() == (REPO / "fastmac_exp" / "models").resolve() else out
+    (records / "export.json").write_text(json.dumps(record, indent=1, default=str) + "\n")
     names = ", ".join(sorted(p.name for p in out.glob("buffer_*.onnx")))
     print(f"wrote {names} in {out} ({record['seconds']} s)")
 
