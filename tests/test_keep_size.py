@@ -202,7 +202,9 @@ def test_cli_run_with_samples_auto_records_the_keep(tmp_path):
 
     from tests.test_cli import run
 
-    p = run("limit=1", "samples=auto", "dataset.family=kitti", f"cache.dir={tmp_path / 'cache'}", tmp=tmp_path)
+    p = run(
+        "limit=1", "samples=auto", "dataset.family=kitti", f"cache.dir={tmp_path / 'cache'}", tmp=tmp_path
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     row = pd.read_csv(tmp_path / "run" / "results.csv").iloc[0]
     assert row["samples"] == "auto" and row["core"] > 0

@@ -4,8 +4,8 @@ One `mlflow server` per module, on 127.0.0.1 (a free port) with a SQLite store a
 temporary directory, started here and stopped (its process group killed) at the end. Against it: a
 two-member sweep (one parent, two children, their params, rr, the parquet artifact; a password in the URI
 found in no file of the sweep and not on the console), then one member resumed (the same MLflow run goes
-on), then a sweep that never logged sent afterwards by `report --to-mlflow` (twice: no step twice), a URL where
-no server answers (exit 2 before the first pair), and a server that goes away mid-run (every row is on
+on), then a sweep that never logged sent afterwards by `report --to-mlflow` (twice: no step twice), a URL
+where no server answers (exit 2 before the first pair), and a server that goes away mid-run (every row is on
 disk, the end says what was not logged, and `report --to-mlflow` sends it once the server is back). The
 helpers' tests need no server.
 """
