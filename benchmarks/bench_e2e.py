@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -44,6 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.machine import cpu_model, load  # noqa: E402
 from fastmac_exp import core  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor, fpfh_features, match_features  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
@@ -63,23 +63,6 @@ LABELS = {
     "kiss_matcher": "KISS-Matcher",
     "open3d_ransac": "Open3D FPFH+RANSAC",
 }
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
-def load() -> str:
-    try:
-        return " ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
 
 
 # ---------------------------------------------------------------------------------------------------

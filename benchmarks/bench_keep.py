@@ -30,6 +30,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.machine import cpu_model, load  # noqa: E402
+
 DATA = REPO.parent / "shared" / "data"
 CACHE = REPO / ".cache" / "bench_keep"
 REAL = {"lidar": ("lidar_smallgicp_source_to_target", 0.05), "kitti95": ("kitti00_95_to_94", 0.075)}
@@ -37,20 +39,6 @@ PLANTED = {"p200k2": (200_000, 0.02), "p200k10": (200_000, 0.10), "p1m2": (1_000
            "p1m10": (1_000_000, 0.10)}  # fmt: skip
 CONFIGS = {"r0.2": (0.2, None), "r0.05": (0.05, None), "k2500": (0.2, 2500), "auto": (0.2, "auto")}
 STAGES = ("sampling", "graph", "cliques", "selection", "pose")
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
-
-
-def load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def real_input(case: str) -> Path | None:

@@ -26,6 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.machine import cpu_model  # noqa: E402
 from fastmac_exp.samplers.keep_size import KeepParams  # noqa: E402
 from studies.estimated_scores import shared_inputs, synthetic_inputs  # noqa: E402
 
@@ -166,16 +167,6 @@ def write_section(
     else:
         text = text.rstrip() + "\n\n" + block
     page.write_text(text)
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.keypoints import MIN_POINTS, keypoints, resolve_impl, voxel_down
+from fastmac_exp.descriptors.keypoints import keypoints, require_keypoints, resolve_impl, voxel_down
 from fastmac_exp.descriptors.matching import correspondences_from_features, correspondences_from_kept_sources
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
@@ -37,11 +37,7 @@ def voxel_keypoints(points: np.ndarray, voxel: float, what: str = "cloud", impl:
         kp = voxel_down(np.ascontiguousarray(pts), voxel, "core")
     except InputError as exc:
         raise InputError(f"{what}: {exc}") from None
-    if len(kp) < MIN_POINTS:
-        raise InputError(
-            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-            f"FPFH needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
-        )
+    require_keypoints(kp, len(pts), voxel, what, who="FPFH")
     return kp
 
 

@@ -64,9 +64,16 @@ def keypoints(
         kp = voxel_down(pts, voxel, impl)
     except InputError as exc:
         raise InputError(f"{what}: {exc}") from None
+    require_keypoints(kp, len(pts), voxel, what)
+    return pts, kp
+
+
+def require_keypoints(
+    kp: np.ndarray, n_points: int, voxel: float, what: str, who: str = "the descriptor"
+) -> None:
+    """InputError when fewer than MIN_POINTS keypoints survived the voxel grid."""
     if len(kp) < MIN_POINTS:
         raise InputError(
-            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {len(pts)}); "
-            f"the descriptor needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
+            f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {n_points}); "
+            f"{who} needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
         )
-    return pts, kp
