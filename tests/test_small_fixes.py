@@ -32,7 +32,7 @@ def test_benchmarks_and_evaluation_end_in_one_line_not_a_traceback(tmp_path):
          f"compare_cores: --old {tmp_path / 'nosuch.so'}: no such file"),
         (["benchmarks/fpfh_orientation.py", "--data", str(tmp_path)],
          f"fpfh_orientation: shared_real: {tmp_path / 'pairs.json'} not found"),
-        (["training/evaluate.py", "--real", "--real-root", str(tmp_path)],
+        (["descriptors/evaluate.py", "--real", "--real-root", str(tmp_path)],
          f"evaluate: --real: {tmp_path / 'pairs.json'} not found"),
     ]  # fmt: skip
     for args, message in cases:
