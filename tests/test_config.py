@@ -59,9 +59,13 @@ def test_library_registry_agrees_with_configs():
         assert type(from_cfg) is type(make_sampler(name)) and from_cfg.name == make_sampler(name).name
 
 
+DOCS_WITH_COMMANDS = ("README.md", "docs/running.md", "docs/descriptors.md")
+
+
 def readme_run_commands() -> list[str]:
-    """Every `python run.py ...` line in README.md's bash blocks, comment stripped."""
-    text = (CONF.parent / "README.md").read_text()
+    """Every `python run.py ...` line in the bash blocks of the README and the docs pages its commands moved
+    to, comment stripped."""
+    text = "\n".join((CONF.parent / page).read_text() for page in DOCS_WITH_COMMANDS)
     out, in_bash = [], False
     for line in text.splitlines():
         if line.startswith("```"):

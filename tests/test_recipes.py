@@ -25,6 +25,9 @@ RECIPES = [
 # the texts that give commands or paths into descriptors/
 TEXTS = [
     "README.md",
+    "docs/descriptors.md",
+    "docs/running.md",
+    "docs/development.md",
     "descriptors/**/*.md",
     "descriptors/**/*.py",
     "conf/descriptor/*.yaml",
