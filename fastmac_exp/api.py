@@ -14,7 +14,7 @@ from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
-from fastmac_exp.offset import describe_moved
+from fastmac_exp.offset import moved_pair, pair_offset, result_to_original
 from fastmac_exp.options import apply_options, compose_run, instantiate_part
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
@@ -101,6 +101,7 @@ def register(
     mac_overrides = OmegaConf.to_container(cfg.mac, resolve=True)
     graph_key = "fpfh"
     describe_ms = 0.0
+    offset = np.zeros(3)  # correspondences are moved by register_correspondences itself
     resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
     if isinstance(source, Correspondences):
         corr = source
@@ -131,8 +132,10 @@ def register(
 
             descriptor = FPFHDescriptor()
         graph_key = descriptor.graph_key
+        # georeferenced clouds: moved once to a frame at the pair's centre, the pose mapped back on exit
+        offset = pair_offset(pair)
         t0 = time.perf_counter()
-        corr = describe_moved(descriptor, pair, rng)
+        corr = descriptor(moved_pair(pair, offset), rng)
         describe_ms = (time.perf_counter() - t0) * 1e3
     if len(corr) < 3:  # else the sampler's advice would be a ratio above 1
         raise InputError(f"{len(corr)} correspondence(s): a clique, and a pose, needs at least 3")
@@ -157,7 +160,7 @@ def register(
             pose=nan, pose_unrefined=nan.copy(), kept=empty, clique=empty, error=str(exc)
         )
     result.timings["describe"] = describe_ms
-    return result
+    return result_to_original(result, offset)
 
 
 def _backend_choice(name: str) -> str:

@@ -54,6 +54,7 @@ class Components:
             "descriptor": desc_plain,
             "files": _file_stamps(desc_plain),  # a retrained model invalidates its cached matches
             "version": __version__,
+            "frame": "pair-centred",  # entries hold what run_pair describes: the pair moved to its centre
             "seed": int(cfg.seed),
         }
         self.labels = {  # the results rows' labels: what each part calls itself

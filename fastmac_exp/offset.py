@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from fastmac_exp.types import Correspondences, Pair
+from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 CENTRE_BEYOND = 1e3  # metres
 
@@ -45,6 +45,23 @@ def to_moved(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return to_original(pose, -offset)
 
 
+def pair_offset(pair: Pair) -> np.ndarray:
+    """The pair's common offset: from its clouds, else from its correspondences."""
+    if pair.src_cloud is not None and pair.tgt_cloud is not None:
+        return common_offset(pair.src_cloud, pair.tgt_cloud)
+    if pair.correspondences is not None:
+        return common_offset(pair.correspondences.src, pair.correspondences.tgt)
+    return np.zeros(3)
+
+
+def result_to_original(result: RegistrationResult, offset: np.ndarray) -> RegistrationResult:
+    """A result registered in the moved frame with its poses mapped back to the original one (in place)."""
+    if offset.any():
+        result.pose = to_original(result.pose, offset)
+        result.pose_unrefined = to_original(result.pose_unrefined, offset)
+    return result
+
+
 def moved_pair(pair: Pair, offset: np.ndarray) -> Pair:
     """The pair in the moved frame: clouds, correspondences and GT."""
     if not offset.any():
@@ -59,7 +76,8 @@ def moved_pair(pair: Pair, offset: np.ndarray) -> Pair:
 
 
 def describe_moved(descriptor, pair: Pair, rng: np.random.Generator) -> Correspondences:
-    """The descriptor's correspondences, computed on the moved clouds, in the original frame."""
+    """The descriptor's correspondences, computed on the moved clouds, in the original frame (for callers that
+    work in the original frame; run_pair and register move the pair once and stay in the moved frame)."""
     offset = common_offset(pair.src_cloud, pair.tgt_cloud)
     corr = descriptor(moved_pair(pair, offset), rng)
     return translate(corr, offset) if offset.any() else corr

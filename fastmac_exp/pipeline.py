@@ -19,7 +19,7 @@ from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.metrics import pose_errors
-from fastmac_exp.offset import common_offset, describe_moved, moved_pair, to_original, translate
+from fastmac_exp.offset import common_offset, moved_pair, pair_offset, result_to_original, translate
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.row import PairRow
 from fastmac_exp.samplers import Sampler, SampleResult
@@ -65,14 +65,19 @@ def run_pair(
     row = row if row is not None else PairRow(index=0, pair=pair.name, dataset="", descriptor=descriptor.name,
                                               sampler=sampler.name, backend=getattr(backend, "name", ""),
                                               ratio=ratio, seed=0, protocol=protocol)  # fmt: skip
+    # Georeferenced pairs are moved once, here, to a frame at the pair's centre (fastmac_exp.offset):
+    # describe, sample, register and evaluate (TE at the scene, not at the frame's far origin) work in it,
+    # and the pose and the correspondences go back to the original frame on the way out.
+    offset = pair_offset(pair)
+    moved = moved_pair(pair, offset)
     # The descriptor draws from a spawned child stream, which leaves `rng` itself untouched, so the
     # sampler's draws are the same whether the correspondences were computed or read from the cache.
     (desc_rng,) = rng.spawn(1)
-    corr, describe_ms, cached = describe(pair, descriptor, desc_rng, cache, cache_key)
+    corr, describe_ms, cached = describe(moved, descriptor, desc_rng, cache, cache_key)
     if cached:
         row.describe_cached = True
-    if pair.gt is not None and corr.labels is None:
-        pair.label(corr)
+    if moved.gt is not None and corr.labels is None:
+        moved.label(corr)
     key = descriptor.graph_key
     params = mac_params_for(pair.family, key, pair.resolution, graph_overrides, mac_overrides)
     # FastMAC's sampling graph fixes the resolution (spec 7.2: FIXED_RESOLUTION, rescaled for object scans);
@@ -85,13 +90,8 @@ def run_pair(
         inliers_in=int(corr.labels.sum()) if corr.labels is not None else None,
         inlier_ratio_in=corr.inlier_ratio,
     )
-    # georeferenced pairs register and are judged in a frame at the pair's centre (TE at the scene, not at
-    # the frame's far origin); the row's pose is the original frame's
-    clouds = pair.src_cloud is not None and pair.tgt_cloud is not None
-    offset = common_offset(pair.src_cloud, pair.tgt_cloud) if clouds else common_offset(corr.src, corr.tgt)
-    work = translate(corr, -offset) if offset.any() else corr
     result, sample = register_correspondences(
-        work, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
+        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
@@ -119,11 +119,11 @@ def run_pair(
         cap_hit=result.cap_hit,
         zero_filled=sample.zero_filled,
     )
-    verdict = evaluate(moved_pair(pair, offset), result, protocol)
+    verdict = evaluate(moved, result, protocol)
     row.set(re_deg=verdict.re_deg, te_cm=verdict.te_cm, success=verdict.success)
+    result_to_original(result, offset)
     if offset.any():
-        result.pose = to_original(result.pose, offset)
-        result.pose_unrefined = to_original(result.pose_unrefined, offset)
+        corr = translate(corr, offset)
     row.timings = {"describe": describe_ms, **result.timings}
     row.pose = " ".join(f"{v:.17g}" for v in result.pose.ravel())  # exact: georeferenced poses are ~1e6
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
@@ -161,8 +161,9 @@ def describe(
     cache: CorrespondenceCache | None = None,
     cache_key: str | None = None,
 ) -> tuple[Correspondences, float, bool]:
-    """(correspondences, describe ms, read from the cache): the pair's own correspondences when it
-    carries them, else the cache's entry, else the descriptor's output (then stored in the cache)."""
+    """(correspondences, describe ms, read from the cache) of a pair in run_pair's frame (moved to its
+    centre where it is georeferenced): the pair's own correspondences when it carries them, else the cache's
+    entry, else the descriptor's output (then stored in the cache, in that frame: its key says so)."""
     if pair.correspondences is not None:
         return pair.correspondences, 0.0, False
     cached = cache.load(cache_key) if cache is not None and cache_key else None
@@ -170,7 +171,7 @@ def describe(
         corr, describe_ms = cached
         return corr, describe_ms, True
     t0 = time.perf_counter()
-    corr = describe_moved(descriptor, pair, rng)
+    corr = descriptor(pair, rng)
     describe_ms = (time.perf_counter() - t0) * 1e3
     if cache is not None and cache_key:
         cache.save(cache_key, corr, describe_ms)
@@ -196,7 +197,7 @@ def register_correspondences(
     """
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()
-    offset = common_offset(corr.src, corr.tgt)  # georeferenced input: work near the origin
+    offset = common_offset(corr.src, corr.tgt)  # georeferenced correspondences of a library caller
     work = translate(corr, -offset) if offset.any() else corr
     t0 = time.perf_counter()
     sample = sampler.sample(work, ratio, sample_graph or params.graph, family, rng, samples=samples)
@@ -210,9 +211,7 @@ def register_correspondences(
     )
     result.trusted, result.confidence = verdict.trusted, verdict.confidence
     result.chance_inliers = verdict.chance_inliers
-    if offset.any():
-        result.pose = to_original(result.pose, offset)
-        result.pose_unrefined = to_original(result.pose_unrefined, offset)
+    result_to_original(result, offset)
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores

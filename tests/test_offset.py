@@ -63,3 +63,29 @@ def test_the_offset_composes_into_the_pose():
     np.testing.assert_allclose((pts - offset) @ moved[:3, :3].T + moved[:3, 3] + offset,
                                pts @ pose[:3, :3].T + pose[:3, 3], atol=1e-6)  # fmt: skip
     np.testing.assert_allclose(to_original(moved, offset), pose, atol=1e-9)
+
+
+def test_a_cached_far_pair_registers_exactly_as_described(tmp_path):
+    """run_pair moves the pair once and describes it in the moved frame; the correspondence cache keeps that
+    frame, so a run that reads it registers exactly as the run that described (no round trip through the
+    original frame's large coordinates), and the outcome's correspondences are the original frame's."""
+    from fastmac_exp.cache import CorrespondenceCache
+
+    pair = SyntheticDataset(family="3dmatch", num_pairs=1, seed=0, cache_dir=str(tmp_path)).load(0)
+    grid = 2.0**-20
+    pair = dataclasses.replace(pair, src_cloud=np.round(pair.src_cloud / grid) * grid,
+                               tgt_cloud=np.round(pair.tgt_cloud / grid) * grid)  # fmt: skip
+    far = _placed(pair, np.array([2e5, -3e5, 50.0]))
+    cache = CorrespondenceCache(tmp_path / "corr")
+
+    def register():
+        return run_pair(far, FPFHDescriptor(), make_sampler("highpass"), make_backend("cpp"), 0.2,
+                        np.random.default_rng([0, 0]), cache=cache, cache_key="far")  # fmt: skip
+
+    described, cached = register(), register()
+    assert not described.row.get("describe_cached") and cached.row["describe_cached"]
+    assert described.row["success"] and cached.row["pose"] == described.row["pose"]
+    stored, _ = cache.load("far")
+    assert np.abs(stored.src.mean(axis=0)).max() < 50.0  # the pair-centred frame
+    assert np.abs(described.corr.src.mean(axis=0) - far.src_cloud.mean(axis=0)).max() < 50.0  # the original
+    np.testing.assert_array_equal(cached.corr.src, described.corr.src)
