@@ -15,8 +15,6 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.stats import poisson
 
 # confidence a pose needs to be trusted: a false-accept chance of 1 % under the null (docs/trust.md
 # calibrates it on the real pairs of ../shared/data and on unrelated pairs made of them)
@@ -44,6 +42,8 @@ def chance_inliers(src: np.ndarray, tgt: np.ndarray, pose: np.ndarray, threshold
         return 0.0
     step = max(1, n // CHANCE_SAMPLE)
     moved = src[::step] @ pose[:3, :3].T + pose[:3, 3]
+    from scipy.spatial import cKDTree  # here, not at import: `import fastmac_exp` stays light
+
     near = cKDTree(tgt).query_ball_point(moved, threshold, return_length=True)
     return float(np.mean(near))
 
@@ -57,6 +57,8 @@ def assess(
         return Trust(False, 0.0, float("nan"))
     lam = chance_inliers(src, tgt, pose, threshold)
     mean = max(int(clique), 3) + lam + STRUCTURE_RATE * len(src)
+    from scipy.stats import poisson
+
     log_p = float(poisson.logsf(int(inliers) - 1, mean))  # log P(X >= inliers): exact far in the tail
     confidence = 1.0 - math.exp(min(log_p, 0.0))
     return Trust(confidence >= TRUST_LEVEL, confidence, lam)
