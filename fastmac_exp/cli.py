@@ -17,7 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from fastmac_exp.errors import FastMacError, InputError
+from fastmac_exp.errors import InputError, own_error
 from fastmac_exp.resources import config_dir
 from fastmac_exp.resume import is_auto, latest_run
 from fastmac_exp.runlock import RunLocked
@@ -140,7 +140,7 @@ def main(cfg: DictConfig) -> float:
             drop_if_empty(run_dir)
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - our own errors, even wrapped by Hydra's instantiate, exit cleanly
-        ours = _own_error(exc)
+        ours = own_error(exc)
         if ours is None:
             raise
         log.error("%s", ours)
@@ -296,17 +296,6 @@ def check_output_dir(argv: list[str]) -> str | None:
         return None
     why = "is a file" if probe.exists() and not probe.is_dir() else "is not writable"
     return f"cannot write the run directory {target}: {probe.resolve()} {why} (set {key}=<a writable path>)"
-
-
-def _own_error(exc: BaseException) -> FastMacError | None:
-    """The project's error behind exc (Hydra wraps constructor errors in InstantiationException)."""
-    seen = 0
-    while exc is not None and seen < 10:
-        if isinstance(exc, FastMacError):
-            return exc
-        exc = exc.__cause__ or exc.__context__
-        seen += 1
-    return None
 
 
 def run() -> None:

@@ -15,3 +15,14 @@ class RegistrationFailed(FastMacError, RuntimeError):
 
 class BackendUnavailable(FastMacError, RuntimeError):
     """The requested backend is not built or not installed."""
+
+
+def own_error(exc: BaseException | None) -> FastMacError | None:
+    """The project's error behind `exc` (Hydra wraps constructor errors in InstantiationException)."""
+    seen = 0
+    while exc is not None and seen < 10:
+        if isinstance(exc, FastMacError):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None

@@ -4,11 +4,9 @@ when it launches it)."""
 
 from __future__ import annotations
 
-from typing import Any
-
 from omegaconf import DictConfig, OmegaConf
 
-from fastmac_exp.errors import FastMacError
+from fastmac_exp.errors import own_error
 from fastmac_exp.resources import config_dir
 
 LOCAL_LAUNCHERS = ("basic", "local", "joblib")
@@ -69,7 +67,7 @@ def check_members(argv: list[str]) -> str | None:
                         Components(cfg).names()
                         checked.add(key)
                 except Exception as exc:  # noqa: BLE001 - only our own errors are a member's mistake
-                    ours = _own(exc)
+                    ours = own_error(exc)
                     if ours is None:
                         return None
                     shown = ",".join(o for o in own if o in _swept(members))
@@ -88,13 +86,3 @@ def _swept(members: list[list[str]]) -> set[str]:
 def _parts_key(cfg: DictConfig) -> str:
     parts = {k: cfg.get(k) for k in ("dataset", "descriptor", "sampler", "backend", "limit", "cache")}
     return OmegaConf.to_yaml(OmegaConf.create(parts))
-
-
-def _own(exc: BaseException) -> Any:
-    seen = 0
-    while exc is not None and seen < 10:
-        if isinstance(exc, FastMacError):
-            return exc
-        exc = exc.__cause__ or exc.__context__
-        seen += 1
-    return None

@@ -310,3 +310,19 @@ def wall_times(studies: Path) -> list[str]:
     )
     out += [f"Commands as logged{note}:", "", "```", *cmds, "```", ""]
     return out
+
+
+def replace_section(page: Path, heading: str, block: str) -> None:
+    """Put `block` (starting with `heading`, a "## " line) into the Markdown page: in place of the section
+    with that heading, else before "## Notes", else at the end."""
+    text = page.read_text()
+    if heading in text:
+        start = text.index(heading)
+        nxt = text.find("\n## ", start + len(heading))
+        text = text[:start] + block + (text[nxt + 1 :] if nxt >= 0 else "")
+    elif "\n## Notes" in text:
+        i = text.index("\n## Notes")
+        text = text[: i + 1] + block + "\n" + text[i + 1 :]
+    else:
+        text = text.rstrip() + "\n\n" + block
+    page.write_text(text)

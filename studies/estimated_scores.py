@@ -33,6 +33,7 @@ from fastmac_exp.params import mac_params_for  # noqa: E402
 from fastmac_exp.samplers.base import draw_proportional  # noqa: E402
 from fastmac_exp.samplers.graph_filter import filter_scores  # noqa: E402
 from fastmac_exp.types import Correspondences  # noqa: E402
+from studies.common import replace_section  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 OUT = REPO / "outputs" / "studies" / "estimated_scores"
@@ -280,18 +281,8 @@ def render(results: dict) -> list[str]:
 
 def write_section(results: dict, page: Path = REPO / "docs" / "results.md") -> None:
     """Replace (or add before ## Notes) section 8 of docs/results.md."""
-    text = page.read_text()
     block = "\n".join(render(results)) + "\n"
-    if SECTION in text:
-        start = text.index(SECTION)
-        nxt = text.find("\n## ", start + len(SECTION))
-        text = text[:start] + block + (text[nxt + 1 :] if nxt >= 0 else "")
-    elif "\n## Notes" in text:
-        i = text.index("\n## Notes")
-        text = text[: i + 1] + block + "\n" + text[i + 1 :]
-    else:
-        text = text.rstrip() + "\n\n" + block
-    page.write_text(text)
+    replace_section(page, SECTION, block)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,6 +28,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.machine import cpu_model  # noqa: E402
 from fastmac_exp.samplers.keep_size import KeepParams  # noqa: E402
+from studies.common import replace_section  # noqa: E402
 from studies.estimated_scores import shared_inputs, synthetic_inputs  # noqa: E402
 
 OUT = REPO / "outputs" / "studies" / "keep_size"
@@ -147,7 +148,6 @@ def write_section(
     results: dict, page: Path = REPO / "docs" / "results.md", thinned: dict | None = None
 ) -> None:
     """Replace (or add before ## Notes) section 9 of docs/results.md (and the thinned inputs' table)."""
-    text = page.read_text()
     lines = render(results)
     if thinned:
         lines += [
@@ -157,16 +157,7 @@ def write_section(
         cmd = "`python -m studies.keep_size --thinned`"
         lines += [ln.replace("`python -m studies.keep_size`", cmd) for ln in render(thinned)[2:]]
     block = "\n".join(lines) + "\n"
-    if SECTION in text:
-        start = text.index(SECTION)
-        nxt = text.find("\n## ", start + len(SECTION))
-        text = text[:start] + block + (text[nxt + 1 :] if nxt >= 0 else "")
-    elif "\n## Notes" in text:
-        i = text.index("\n## Notes")
-        text = text[: i + 1] + block + "\n" + text[i + 1 :]
-    else:
-        text = text.rstrip() + "\n\n" + block
-    page.write_text(text)
+    replace_section(page, SECTION, block)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -55,3 +55,14 @@ def test_studies_import_graph_has_no_cycle():
     graph = {n: _imports(STUDIES / f"{n}.py", names) - {n} for n in names}
     assert "make_results" in graph and "descriptor_robustness" in graph["make_results"]
     assert _cycle(graph) is None, f"import cycle in studies/: {' -> '.join(_cycle(graph))}"
+
+
+def test_replace_section_replaces_in_place_or_adds_before_notes(tmp_path):
+    from studies.common import replace_section
+
+    page = tmp_path / "results.md"
+    page.write_text("# R\n\n## 1. A\n\nold\n\n## 2. B\n\nkeep\n\n## Notes\n\nn\n")
+    replace_section(page, "## 1. A", "## 1. A\n\nnew\n\n")
+    assert page.read_text() == "# R\n\n## 1. A\n\nnew\n\n## 2. B\n\nkeep\n\n## Notes\n\nn\n"
+    replace_section(page, "## 3. C", "## 3. C\n\nc\n")
+    assert page.read_text() == "# R\n\n## 1. A\n\nnew\n\n## 2. B\n\nkeep\n\n## 3. C\n\nc\n\n## Notes\n\nn\n"
