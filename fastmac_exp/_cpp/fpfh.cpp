@@ -206,37 +206,9 @@ inline int bin_of(double t) {  // t already scaled to [0, 11)
     return h < 0 ? 0 : (h >= 11 ? 10 : h);
 }
 
-// The bin of f0 = atan2(y, x), floor(11 (f0 + pi) / (2 pi)), without atan2 where a polynomial decides it:
-// the polynomial is within 1e-5 rad of atan (2e-5 in units of bins), so a value more than 1e-3 from a
-// bin edge is binned exactly; closer ones (and atan2's signed-zero cases at the edges) call atan2.
-inline int angle_bin(double y, double x) {
-    const double ax = std::fabs(x), ay = std::fabs(y);
-    const double hi = std::max(ax, ay), lo = std::min(ax, ay);
-    if (hi > 0 && std::isfinite(hi)) {
-        const double a = lo / hi, s = a * a;
-        double r = ((-0.0464964749 * s + 0.15931422) * s - 0.327622764) * s * a + a;
-        if (ay > ax) r = M_PI_2 - r;
-        if (x < 0) r = M_PI - r;
-        if (y < 0) r = -r;
-        const double t = 11 * (r + M_PI) / (2.0 * M_PI);
-        const double fl = std::floor(t);
-        if (t - fl > 1e-3 && fl + 1 - t > 1e-3) return bin_of(fl);
-    }
-    return bin_of(11 * (std::atan2(y, x) + M_PI) / (2.0 * M_PI));
-}
-
-// acos(|a1|) > acos(|a2|) without two acos calls where the order is clear: acos is decreasing with slope
-// <= -1, so a gap above a few ulps of pi/2 decides it; closer pairs take Open3D's own comparison.
-inline bool swap_ends(double a1, double a2) {
-    const double x1 = std::fabs(a1), x2 = std::fabs(a2);
-    const double gap = x2 - x1;
-    if (gap > 1e-12) return true;
-    if (gap < -1e-12) return false;
-    return std::acos(x1) > std::acos(x2);
-}
-
 // Adds the three bins of the pair (p1, n1) -> (p2, n2) to h with weight incr (Open3D's
-// ComputePairFeatures and ComputeSPFHFeature).
+// ComputePairFeatures and ComputeSPFHFeature, with its acos and atan2): the exact path for the pairs that
+// pair_features' fast one leaves undecided.
 inline void add_pair(const double *p1, const double *n1, const double *p2, const double *n2, double incr,
                      double *h) {
     const double f0 = 0, f2 = 0;
@@ -247,7 +219,7 @@ inline void add_pair(const double *p1, const double *n1, const double *p2, const
         V3 a{n1[0], n1[1], n1[2]}, b{n2[0], n2[1], n2[2]};
         const double a1 = dot(a, dp) / len, a2 = dot(b, dp) / len;
         double f2c;
-        if (swap_ends(a1, a2)) {
+        if (std::acos(std::fabs(a1)) > std::acos(std::fabs(a2))) {
             std::swap(a, b);
             dp = {-dp.x, -dp.y, -dp.z};
             f2c = -a2;
@@ -260,7 +232,7 @@ inline void add_pair(const double *p1, const double *n1, const double *p2, const
             v = divide(v, vn);
             const V3 w = cross(a, v);
             f1 = dot(v, b);
-            h[angle_bin(dot(w, b), dot(a, b))] += incr;
+            h[bin_of(11 * (std::atan2(dot(w, b), dot(a, b)) + M_PI) / (2.0 * M_PI))] += incr;
             h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
             h[22 + bin_of(11 * (f2c + 1.0) * 0.5)] += incr;
             return;
@@ -604,7 +576,7 @@ std::vector<double> pca_normals(const double *points, int64_t n, const Neighbour
                            c[6] - c[1] * c[1], c[7] - c[1] * c[2], c[8] - c[2] * c[2]};
             nrm = smallest_eigenvector(cov);
         } else {
-            nrm = smallest_eigenvector({1, 0, 0, 1, 0, 1});  // Open3D's identity covariance: z
+            nrm = {0, 0, 1};  // Open3D gives fewer than 3 neighbours the identity covariance, whose normal is z
         }
         if (dot(nrm, nrm) == 0.0) nrm = {0, 0, 1};
         if (viewpoint) {
