@@ -1,7 +1,7 @@
 """`python run.py sampler=highpass ratio=0.05 dataset=synthetic`, sweeps with -m: the Hydra app of
-fastmac_exp/cli.py (also `python -m fastmac_exp` and the `fastmac-exp` console script)."""
+fastmac_exp/run/cli.py (also `python -m fastmac_exp` and the `fastmac-exp` console script)."""
 
-from fastmac_exp.cli import run
+from fastmac_exp.run.cli import run
 
 if __name__ == "__main__":
     run()

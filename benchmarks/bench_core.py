@@ -49,8 +49,8 @@ from fastmac_exp import core as cpp  # noqa: E402
 from fastmac_exp.backends.cpp import CppBackend  # noqa: E402
 from fastmac_exp.datasets.planted import planted  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
+from fastmac_exp.geometry.transforms import rotation_error_deg  # noqa: E402
 from fastmac_exp.params import GraphParams, MacParams  # noqa: E402
-from fastmac_exp.transforms import rotation_error_deg  # noqa: E402
 from fastmac_exp.types import Correspondences  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -872,7 +872,7 @@ def bench_turboreg(args) -> list[dict]:
     """Interleaved rounds (medians) of TurboReg, MAC, FastMAC@20 and FastMAC@20 + TurboReg on the real
     reference sets; then 50,000 synthetic 3DMatch-like correspondences with every one kept (max_N null)."""
     from fastmac_exp.families import family as family_record
-    from fastmac_exp.metrics import pose_errors
+    from fastmac_exp.geometry.metrics import pose_errors
 
     reps = args.reps or 3
     threads = cpp.core().default_threads()

@@ -47,11 +47,11 @@ from benchmarks.machine import cpu_model, load  # noqa: E402
 from fastmac_exp import core  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor, fpfh_features, match_features  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
-from fastmac_exp.metrics import pose_errors  # noqa: E402
-from fastmac_exp.offset import describe_moved  # noqa: E402
+from fastmac_exp.geometry.metrics import pose_errors  # noqa: E402
+from fastmac_exp.geometry.offset import describe_moved  # noqa: E402
+from fastmac_exp.geometry.resolution import COMPUTED_FAMILIES, resolution_for  # noqa: E402
 from fastmac_exp.params import mac_params_for  # noqa: E402
 from fastmac_exp.pipeline import register_correspondences  # noqa: E402
-from fastmac_exp.resolution import COMPUTED_FAMILIES, resolution_for  # noqa: E402
 from fastmac_exp.types import Pair  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"

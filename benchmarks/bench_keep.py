@@ -89,7 +89,7 @@ def run_case(case: str, config: str, samples_override: int | None, bound: bool =
 
     from fastmac_exp import core
     from fastmac_exp.backends.cpp import CppBackend
-    from fastmac_exp.metrics import pose_errors
+    from fastmac_exp.geometry.metrics import pose_errors
     from fastmac_exp.pipeline import register_correspondences
     from fastmac_exp.samplers import GraphFilterSampler, RandomSampler
 

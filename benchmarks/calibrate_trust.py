@@ -1,4 +1,4 @@
-"""Calibrate `result.trusted` (fastmac_exp/trust.py) on the real pairs of ../shared/data and on unrelated
+"""Calibrate `result.trusted` (geometry/trust.py) on the real pairs of ../shared/data and on unrelated
 pairs made of them (each pair's target with the source of the next pair of the same category).
 
 For every pair it runs the experiment's flow (FPFH, the given sampler and ratio, the C++ MAC) and prints

@@ -17,7 +17,7 @@ if str(REPO) not in sys.path:
 
 from fastmac_exp.datasets.user_pairs import SharedRealPairs  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
-from fastmac_exp.transforms import rotation_error_deg  # noqa: E402
+from fastmac_exp.geometry.transforms import rotation_error_deg  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,7 +41,7 @@ if str(REPO) not in sys.path:
 
 from fastmac_exp import __version__  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
-from fastmac_exp.metrics import pose_errors  # noqa: E402
+from fastmac_exp.geometry.metrics import pose_errors  # noqa: E402
 from fastmac_exp.params import mac_params_for  # noqa: E402
 from fastmac_exp.types import Correspondences, Pair  # noqa: E402
 

@@ -1,5 +1,5 @@
 """`python -m fastmac_exp ...`: the same Hydra app as `python run.py ...`."""
 
-from fastmac_exp.cli import run
+from fastmac_exp.run.cli import run
 
 run()

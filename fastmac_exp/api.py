@@ -9,16 +9,16 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from fastmac_exp.backends.base import Backend
-from fastmac_exp.checks import check_devices
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
-from fastmac_exp.offset import moved_pair, pair_offset, result_to_original
+from fastmac_exp.geometry.offset import moved_pair, pair_offset, result_to_original
+from fastmac_exp.geometry.resolution import resolution_for
 from fastmac_exp.options import apply_options, compose_run, instantiate_part
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
-from fastmac_exp.resolution import resolution_for
+from fastmac_exp.run.checks import check_devices
 from fastmac_exp.samplers import Sampler
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 

@@ -14,6 +14,7 @@ Formats (spec section 1.1):
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from pathlib import Path
@@ -21,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.transforms import check_rigid
+from fastmac_exp.geometry.resolution import mesh_resolution
+from fastmac_exp.geometry.transforms import check_rigid
 from fastmac_exp.types import MAX_COORD, Correspondences
 
 CLOUD_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".txt", ".npy", ".bin")
@@ -415,3 +417,14 @@ def read_correspondences(path: str | Path, labels_path: str | Path | None = None
     arr = read_correspondence_array(path)
     labels = read_labels(labels_path, len(arr)) if labels_path is not None else None
     return Correspondences(src=arr[:, :3], tgt=arr[:, 3:], labels=labels)
+
+
+@functools.lru_cache(maxsize=512)
+def _file_resolution(path: str, mtime_ns: int, size: int) -> float:
+    return mesh_resolution(load_cloud(Path(path)))
+
+
+def file_resolution(path: str | Path) -> float:
+    """mr of a cloud file, remembered per (path, modification time, size): fragments recur across pairs."""
+    st = Path(path).stat()
+    return _file_resolution(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)

@@ -97,7 +97,7 @@ class Pair:
     inlier_threshold: float = 0.1
     re_thresh_deg: float = 15.0
     te_thresh_m: float = 0.3
-    resolution: float = FIXED_RESOLUTION  # MAC's Gaussian kernel: alpha = 10 res (fastmac_exp.resolution)
+    resolution: float = FIXED_RESOLUTION  # MAC's Gaussian kernel: alpha = 10 res (geometry.resolution)
     # FastMAC's sampling graph: the spec's fixed 3DMatch resolution (7.2), rescaled with the rules of pairs
     # that are not at room scale (object scans), where 0.006 m would link nearly every pair
     sampler_resolution: float = FIXED_RESOLUTION
@@ -140,7 +140,7 @@ class RegistrationResult:
     # what a user without GT can judge the pose by: the input correspondences the pose maps within the
     # inlier threshold (a right pose has many more than the clique; unrelated clouds about the clique's)
     inliers: int = 0
-    # GT-free: whether the pose explains more correspondences than chance would (fastmac_exp.trust), and
+    # GT-free: whether the pose explains more correspondences than chance would (geometry.trust), and
     # the confidence that is thresholded (1 - the false-accept chance; docs/trust.md)
     trusted: bool = False
     confidence: float = 0.0

@@ -16,8 +16,12 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from fastmac_exp import plots  # noqa: E402
-from fastmac_exp.report import aggregate, load_results, markdown_table  # noqa: E402
+from fastmac_exp.report import (  # noqa: E402
+    aggregate,
+    load_results,
+    markdown_table,
+    plots,  # noqa: E402
+)
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

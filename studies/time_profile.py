@@ -9,8 +9,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from fastmac_exp import plots
-from fastmac_exp.report import markdown_table
+from fastmac_exp.report import markdown_table, plots
 from studies.common import PAPER_PROFILE, RATIOS, SHORT, Page, data_heading, ms, row_of, text
 
 STAGES = ("sampling", "graph", "cliques", "selection", "pose", "total")

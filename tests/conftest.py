@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fastmac_exp.transforms import random_rotation
+from fastmac_exp.geometry.transforms import random_rotation
 from fastmac_exp.types import Correspondences, Pair
 
 REPO = Path(__file__).resolve().parents[1]

@@ -76,7 +76,7 @@ def test_every_group_option_is_documented_in_the_docstring():
 
 
 def test_a_right_pose_is_trusted_and_one_of_unrelated_clouds_is_not():
-    """Issue 42 item 2: the GT-free check (fastmac_exp.trust) on correspondences with 10 % inliers and on
+    """Issue 42 item 2: the GT-free check (geometry.trust) on correspondences with 10 % inliers and on
     two unrelated random clouds (a pose with about its clique's support)."""
     good, gt = make_correspondences(n=1000, inlier_ratio=0.1, seed=1)
     res = fastmac_exp.register(good, ratio=0.2)
@@ -87,7 +87,7 @@ def test_a_right_pose_is_trusted_and_one_of_unrelated_clouds_is_not():
 
 
 def test_a_pose_that_explains_only_its_clique_is_not_trusted():
-    from fastmac_exp.trust import assess
+    from fastmac_exp.geometry.trust import assess
 
     rng = np.random.default_rng(0)
     src = rng.uniform(0, 10, (2000, 3))

@@ -213,9 +213,9 @@ def test_run_keys_are_checked_before_the_run_starts(tmp_path):
     import pytest
     from hydra import compose, initialize_config_dir
 
-    from fastmac_exp.checks import check_run_keys
     from fastmac_exp.errors import InputError
     from fastmac_exp.resources import config_dir
+    from fastmac_exp.run.checks import check_run_keys
 
     p = run("seed=abc", tmp=tmp_path)
     out = p.stdout + p.stderr
@@ -315,7 +315,7 @@ def test_samples_keeps_a_count_and_the_row_says_which_scores_ran(tmp_path):
 
 def _blob_pair(tmp: Path) -> tuple[Path, Path, np.ndarray]:
     """A bumpy closed surface (FPFH finds matches on it) and the same surface under a known pose."""
-    from fastmac_exp.transforms import random_rotation
+    from fastmac_exp.geometry.transforms import random_rotation
 
     rng = np.random.default_rng(0)
     u, v = rng.uniform(0, 2 * np.pi, 8000), rng.uniform(0, np.pi, 8000)
@@ -331,8 +331,8 @@ def _blob_pair(tmp: Path) -> tuple[Path, Path, np.ndarray]:
 def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path):
     """No GT: not a failure; the summary prints the estimated pose with its confidence and writes it as a
     4x4 file that dataset.gt reads back (the pair then registers against it exactly)."""
+    from fastmac_exp.geometry.metrics import pose_errors
     from fastmac_exp.io import read_matrix
-    from fastmac_exp.metrics import pose_errors
 
     src, tgt, gt = _blob_pair(tmp_path)
     p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", tmp=tmp_path)

@@ -16,8 +16,8 @@ from fastmac_exp import core as cpp
 from fastmac_exp.backends import cpp as cpp_backend
 from fastmac_exp.backends import python_mac
 from fastmac_exp.errors import BackendUnavailable, RegistrationFailed
+from fastmac_exp.geometry.transforms import kabsch, random_rotation, rotation_error_deg
 from fastmac_exp.params import GraphParams, MacParams
-from fastmac_exp.transforms import kabsch, random_rotation, rotation_error_deg
 from fastmac_exp.types import Correspondences
 from tests.conftest import make_correspondences
 

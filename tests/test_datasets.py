@@ -26,8 +26,8 @@ from fastmac_exp.datasets.user_pairs import (
 )
 from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
 from fastmac_exp.errors import InputError
-from fastmac_exp.resolution import pair_resolution
-from fastmac_exp.transforms import random_rotation
+from fastmac_exp.geometry.resolution import pair_resolution
+from fastmac_exp.geometry.transforms import random_rotation
 from fastmac_exp.types import Correspondences, Pair
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -566,7 +566,7 @@ def test_precomputed_config_and_run_config_error():
         cfg = compose(
             "config", overrides=["dataset=3dmatch", "descriptor=precomputed", "descriptor.graph_key=fcgf"]
         )
-    from fastmac_exp.experiment import Components
+    from fastmac_exp.run.experiment import Components
 
     parts = Components(cfg)  # the experiment's own builder: every node instantiated untouched
     ds = parts.dataset

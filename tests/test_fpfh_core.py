@@ -335,7 +335,7 @@ def test_nearest_other_distances_equal_a_kd_tree(case):
 
 
 def test_mesh_resolution_rejects_bad_clouds():
-    from fastmac_exp.resolution import mesh_resolution
+    from fastmac_exp.geometry.resolution import mesh_resolution
 
     with pytest.raises(InputError, match="N >= 2"):
         mesh_resolution(np.zeros((1, 3)))

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fastmac_exp import io, transforms
+from fastmac_exp import io
 from fastmac_exp.datasets import benchmark_files as bf
 from fastmac_exp.errors import InputError
-from fastmac_exp.transforms import random_rotation
+from fastmac_exp.geometry import transforms
+from fastmac_exp.geometry.transforms import random_rotation
 
 
 def _rigid(seed: int = 0) -> np.ndarray:

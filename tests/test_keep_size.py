@@ -7,10 +7,10 @@ import pytest
 from omegaconf import OmegaConf
 
 from fastmac_exp.backends.product_bound import densest_within
-from fastmac_exp.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.datasets.planted import planted
 from fastmac_exp.errors import InputError
 from fastmac_exp.params import mac_params_for
+from fastmac_exp.run.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.samplers import GraphFilterSampler, RandomSampler, draw_proportional
 from fastmac_exp.samplers.keep_size import (
     KeepParams,
@@ -174,7 +174,7 @@ def test_bounded_mac_gives_the_exact_pose_on_a_near_clique():
 
     from fastmac_exp.backends.cpp import CppBackend
     from fastmac_exp.backends.product_bound import estimated_degrees, product_work
-    from fastmac_exp.transforms import rotation_error_deg
+    from fastmac_exp.geometry.transforms import rotation_error_deg
 
     for seed in (3, 5):
         corr, gt, params = _near_clique(seed=seed)

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fastmac_exp.metrics import pose_errors, summarize
+from fastmac_exp.geometry.metrics import pose_errors, summarize
 from fastmac_exp.pipeline import evaluate
 from fastmac_exp.types import Pair, RegistrationResult
 

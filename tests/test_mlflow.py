@@ -27,7 +27,7 @@ import pandas as pd
 import pytest
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.redact import redact, redact_text, split_credentials
+from fastmac_exp.trackers.redact import redact, redact_text, split_credentials
 
 REPO = Path(__file__).resolve().parents[1]
 THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -82,7 +82,7 @@ def test_without_mlflow_the_choice_is_a_one_line_error(monkeypatch):
 
     from hydra import compose, initialize_config_dir
 
-    from fastmac_exp.experiment import _make_trackers
+    from fastmac_exp.run.experiment import _make_trackers
 
     real_import = builtins.__import__
 
@@ -311,7 +311,7 @@ def test_an_unreachable_server_stops_the_run_before_its_first_pair(caches, tmp_p
 def test_a_server_that_goes_away_mid_run_loses_nothing(server, caches, tmp_path, monkeypatch, caplog):
     from hydra import compose, initialize_config_dir
 
-    from fastmac_exp.experiment import run_experiment
+    from fastmac_exp.run.experiment import run_experiment
     from fastmac_exp.trackers.mlflow_tracker import MlflowTracker
 
     srv = server  # stopped mid-run and started again on its port and store (this module's last test)

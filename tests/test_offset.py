@@ -10,7 +10,7 @@ import pytest
 from fastmac_exp.backends import make_backend
 from fastmac_exp.datasets.synthetic import SyntheticDataset
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor
-from fastmac_exp.offset import common_offset, to_moved, to_original
+from fastmac_exp.geometry.offset import common_offset, to_moved, to_original
 from fastmac_exp.pipeline import run_pair
 from fastmac_exp.samplers import make_sampler
 
@@ -69,7 +69,7 @@ def test_a_cached_far_pair_registers_exactly_as_described(tmp_path):
     """run_pair moves the pair once and describes it in the moved frame; the correspondence cache keeps that
     frame, so a run that reads it registers exactly as the run that described (no round trip through the
     original frame's large coordinates), and the outcome's correspondences are the original frame's."""
-    from fastmac_exp.cache import CorrespondenceCache
+    from fastmac_exp.pipeline.cache import CorrespondenceCache
 
     pair = SyntheticDataset(family="3dmatch", num_pairs=1, seed=0, cache_dir=str(tmp_path)).load(0)
     grid = 2.0**-20

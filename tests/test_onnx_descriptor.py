@@ -212,7 +212,7 @@ def test_fcgf_is_a_documented_alias_of_fcgf_lite(caplog):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from fastmac_exp.experiment import Components
+    from fastmac_exp.run.experiment import Components
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         alias = compose(config_name="config", overrides=["descriptor=fcgf"])

@@ -14,10 +14,10 @@ from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.descriptors.base import Descriptor  # noqa: F401 - interface import must work
 from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
 from fastmac_exp.errors import InputError
-from fastmac_exp.experiment import run_experiment
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
-from fastmac_exp.results import COLUMNS, load_table
+from fastmac_exp.run.experiment import run_experiment
+from fastmac_exp.run.results import COLUMNS, load_table
 from fastmac_exp.samplers import GraphFilterSampler, NoSampler
 from fastmac_exp.types import Correspondences
 from tests.conftest import make_correspondences
@@ -124,9 +124,9 @@ def test_none_sampler_records_ratio_one(tmp_path):
 
 
 def test_correspondence_cache_changes_no_result(tmp_path):
-    from fastmac_exp.cache import CorrespondenceCache
     from fastmac_exp.descriptors.oracle import OracleDescriptor
     from fastmac_exp.pipeline import run_pair
+    from fastmac_exp.pipeline.cache import CorrespondenceCache
     from fastmac_exp.types import Pair
 
     rng = np.random.default_rng(0)
@@ -195,7 +195,7 @@ def test_failed_pair_keeps_what_was_measured(tmp_path):
 def test_pair_row_keeps_what_was_measured_and_leaves_out_the_rest():
     """A row's dict holds the fields a stage set (None included) and none it did not reach; timings
     become t_<stage>_ms columns just before the pose; an unknown field is refused."""
-    from fastmac_exp.row import PairRow
+    from fastmac_exp.pipeline.row import PairRow
 
     row = PairRow(index=3, pair="p", dataset="d", descriptor="fpfh", sampler="highpass", backend="cpp",
                   ratio=0.2, seed=0, protocol="honest")  # fmt: skip
@@ -220,6 +220,6 @@ def test_a_costly_descriptor_says_what_it_costs_when_the_run_starts(tmp_path, ca
 
     assert "a pair" in BufferDescriptor.cost_note and "INT8" in BufferDescriptor.cost_note
     cfg = _cfg(tmp_path, descriptor={"_target_": "tests.test_pipeline.CostlyDescriptor"})
-    with caplog.at_level("WARNING", logger="fastmac_exp.experiment"):
+    with caplog.at_level("WARNING", logger="fastmac_exp.run.experiment"):
         run_experiment(cfg, tmp_path / "run")
     assert any("about an hour a pair" in r.getMessage() for r in caplog.records)

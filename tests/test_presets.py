@@ -129,7 +129,7 @@ def caches(tmp_path_factory):
 
 
 def _run(overrides: list[str], run_dir: Path) -> pd.DataFrame:
-    from fastmac_exp.experiment import run_experiment
+    from fastmac_exp.run.experiment import run_experiment
 
     table, summary = run_experiment(_compose(overrides), run_dir)
     assert summary["complete"] and (run_dir / "results.parquet").exists()

@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from fastmac_exp.backends import cpp as cpp_backend
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.errors import RegistrationFailed
+from fastmac_exp.geometry.transforms import random_rotation
 from fastmac_exp.params import mac_params_for
-from fastmac_exp.transforms import random_rotation
 from fastmac_exp.types import Correspondences
 
 

@@ -15,9 +15,9 @@ from fastmac_exp.backends.python_mac import (
     select_cliques,
 )
 from fastmac_exp.errors import RegistrationFailed
-from fastmac_exp.metrics import pose_errors
+from fastmac_exp.geometry.metrics import pose_errors
+from fastmac_exp.geometry.transforms import kabsch, random_rotation
 from fastmac_exp.params import mac_params_for
-from fastmac_exp.transforms import kabsch, random_rotation
 from fastmac_exp.types import Correspondences
 from tests.conftest import make_correspondences
 

@@ -14,8 +14,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from fastmac_exp.datasets.user_pairs import SharedRealPairs, UserPairs
-from fastmac_exp.metrics import pose_errors
-from fastmac_exp.transforms import nearest_rigid
+from fastmac_exp.geometry.metrics import pose_errors
+from fastmac_exp.geometry.transforms import nearest_rigid
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 HAVE_DATA = (SHARED / "pairs.json").is_file()
@@ -101,7 +101,7 @@ def test_gt_improves_overlap(shared_ds, pair_id):
 
 
 def test_project_metrics_on_a_real_gt(shared_ds):
-    """fastmac_exp.metrics.pose_errors on a real 3DMatch GT, which is not exactly orthonormal: the GT's
+    """geometry.metrics.pose_errors on a real 3DMatch GT, which is not exactly orthonormal: the GT's
     nearest rigid motion scores RE ~ 0 (RE is measured against that rotation, not the raw 3 x 3 block, which
     is 0.58 deg from every rotation), and a TE of 1.5 x the threshold fails."""
     pair = shared_ds.load(0)

@@ -55,7 +55,7 @@ def test_fastmac_highpass_20_percent_recovers_gt(pair_id, backend):
 
 def test_library_register_on_two_clouds():
     import fastmac_exp
-    from fastmac_exp.metrics import pose_errors
+    from fastmac_exp.geometry.metrics import pose_errors
 
     pair = _pair(INDOOR[1])
     res = fastmac_exp.register(pair.src_cloud, pair.tgt_cloud, family="3dmatch", voxel_size=0.05, ratio=0.2)

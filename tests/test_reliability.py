@@ -17,7 +17,7 @@ from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
-from fastmac_exp.results import read_rows
+from fastmac_exp.run.results import read_rows
 from fastmac_exp.samplers import NoSampler
 from fastmac_exp.types import Correspondences
 
@@ -66,7 +66,7 @@ SCRIPT = """
 import sys, time
 sys.path.insert(0, {repo!r})
 from omegaconf import OmegaConf
-from fastmac_exp.experiment import run_experiment
+from fastmac_exp.run.experiment import run_experiment
 from tests import conftest
 
 class Slow(conftest.ListDataset):
@@ -119,7 +119,7 @@ import numpy as np
 signal.signal(signal.SIGINT, signal.default_int_handler)  # even if the parent left SIGINT ignored
 sys.path.insert(0, {repo!r})
 from omegaconf import OmegaConf
-from fastmac_exp.experiment import run_experiment
+from fastmac_exp.run.experiment import run_experiment
 from fastmac_exp.types import Correspondences, Pair
 from tests import conftest
 

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from fastmac_exp.report import aggregate, load_results, main, make_report
-from fastmac_exp.results import ResultsLog
+from fastmac_exp.run.results import ResultsLog
 
 NAN = math.nan
 BASE = {"dataset": "toy", "descriptor": "fpfh", "backend": "python", "protocol": "honest"}
@@ -145,7 +145,7 @@ def test_report_errors(tmp_path, capsys):
 
 
 def test_plots_with_several_datasets_backends_and_seeds(tmp_path):
-    from fastmac_exp.plots import plot_all
+    from fastmac_exp.report.plots import plot_all
 
     rng = np.random.default_rng(0)
     rows = []
@@ -169,7 +169,7 @@ def test_plots_with_several_datasets_backends_and_seeds(tmp_path):
 
 def _figures(monkeypatch):
     """The figures the plot functions make (captured when they close them)."""
-    from fastmac_exp import plots
+    from fastmac_exp.report import plots
 
     figs = []
     real_close = plots.plt.close
@@ -180,7 +180,7 @@ def _figures(monkeypatch):
 def test_time_profile_panels_keep_their_own_scale_and_ratio_axes_show_only_data(tmp_path, monkeypatch):
     """A slow method (FPS, ~400 ms) must not flatten a fast one's bars (~10 ms), and a ratio axis has ticks
     only where there are data."""
-    from fastmac_exp.plots import plot_sampling, plot_time_profile
+    from fastmac_exp.report.plots import plot_sampling, plot_time_profile
 
     rows = []
     for sampler, ms in (("fps", 400.0), ("highpass", 10.0)):
@@ -228,7 +228,7 @@ def test_report_says_which_search_ran_and_how_many_pairs_were_capped(tmp_path):
 
 
 def test_re_te_panels_say_when_no_pair_registered(tmp_path, monkeypatch):
-    from fastmac_exp.plots import plot_sampling
+    from fastmac_exp.report.plots import plot_sampling
 
     figs = _figures(monkeypatch)
     rows = [

@@ -18,7 +18,7 @@ def _captured(monkeypatch, module) -> list:
 
 
 def test_the_time_profiles_legend_covers_no_panel_and_spells_the_stages_out(tmp_path, monkeypatch):
-    from fastmac_exp import plots
+    from fastmac_exp.report import plots
 
     figs = _captured(monkeypatch, plots)
     agg = pd.DataFrame({

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from fastmac_exp.results import read_rows
-from fastmac_exp.runlock import LOCK_NAME, RunLock
+from fastmac_exp.run.results import read_rows
+from fastmac_exp.run.runlock import LOCK_NAME, RunLock
 from tests.test_cli import REPO, _default_run_dir, run
 
 
@@ -42,8 +42,8 @@ def test_a_run_directory_held_by_a_live_run_is_refused_and_a_stale_lock_is_taken
 def test_the_experiment_takes_the_lock_itself_for_runs_that_start_together(tmp_path):
     """The callback's early check cannot see a run that starts at the same instant: the experiment's own
     lock is what keeps the second one out (library use included)."""
-    from fastmac_exp.experiment import run_experiment
-    from fastmac_exp.runlock import RunLocked
+    from fastmac_exp.run.experiment import run_experiment
+    from fastmac_exp.run.runlock import RunLocked
     from tests.test_pipeline import _cfg
 
     (tmp_path / "run").mkdir()

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from fastmac_exp import atomic
-from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.datasets.synthetic import load_cached, save_cached
+from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.types import Correspondences
 
 N_PROCS, SECONDS, KEYS = 4, 3.0, ("k0", "k1")

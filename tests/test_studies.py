@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fastmac_exp.results import ResultsLog
+from fastmac_exp.run.results import ResultsLog
 from studies import common, make_results
 
 REPO = Path(__file__).resolve().parents[1]

@@ -12,7 +12,7 @@ from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.datasets.synthetic import SyntheticDataset, load_cached
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
-from fastmac_exp.resolution import pair_resolution
+from fastmac_exp.geometry.resolution import pair_resolution
 
 TINY_INDOOR = {"points_per_scan": 6000}
 TINY_OUTDOOR = {"points_per_scan": 12800}

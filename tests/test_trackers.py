@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from fastmac_exp.pipeline import PairOutcome
-from fastmac_exp.results import to_table
+from fastmac_exp.run.results import to_table
 from fastmac_exp.samplers import SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -395,7 +395,7 @@ def test_default_tracker_config_instantiates():
     """conf/tracker/default.yaml: wandb offline + rerun per run, built the way the experiment builds them."""
     from hydra import compose, initialize_config_dir
 
-    from fastmac_exp.experiment import _make_trackers
+    from fastmac_exp.run.experiment import _make_trackers
 
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config")
@@ -453,7 +453,7 @@ def test_snapshot_reads_back_what_the_recording_holds(tmp_path, strict_rerun):
 
 def test_report_writes_pair_snapshots(tmp_path, strict_rerun):
     from fastmac_exp.report import main
-    from fastmac_exp.results import ResultsLog
+    from fastmac_exp.run.results import ResultsLog
     from fastmac_exp.trackers.rerun_tracker import RerunTracker
 
     outcomes = [make_outcome(i, f"p{i}") for i in range(3)]

@@ -11,7 +11,7 @@ import pytest
 from fastmac_exp import core
 from fastmac_exp.backends.turboreg import TurboRegBackend
 from fastmac_exp.errors import InputError, RegistrationFailed
-from fastmac_exp.metrics import pose_errors
+from fastmac_exp.geometry.metrics import pose_errors
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.types import Correspondences
 from tests.conftest import SHARED_DATA, make_correspondences
@@ -235,7 +235,7 @@ def test_fastmac_sampler_in_front(tmp_path):
 
 
 def test_summary_shows_turboregs_stages():
-    from fastmac_exp.experiment import format_summary
+    from fastmac_exp.run.experiment import format_summary
 
     s = {"pairs": 1, "median_graph_ms": 1.0, "median_pivots_ms": 2.0, "median_hypotheses_ms": 3.0,
          "median_cliques_ms": float("nan"), "median_pose_ms": 0.1}  # fmt: skip

@@ -14,9 +14,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from fastmac_exp.errors import RegistrationFailed
+from fastmac_exp.geometry.transforms import kabsch
 from fastmac_exp.graph import first_order, second_order
 from fastmac_exp.params import MacParams
-from fastmac_exp.transforms import kabsch
 from fastmac_exp.types import Correspondences, RegistrationResult
 
 

@@ -16,8 +16,8 @@ from typing import NamedTuple
 import numpy as np
 
 from fastmac_exp.errors import InputError
+from fastmac_exp.geometry.transforms import RIGID_TOL, check_rigid, rotation_deviation
 from fastmac_exp.io import file_path, loadtxt, parse_floats, text_lines
-from fastmac_exp.transforms import RIGID_TOL, check_rigid, rotation_deviation
 
 
 # -- 3DMatch gt.log ---------------------------------------------------------------------------------------

@@ -44,9 +44,9 @@ from fastmac_exp.datasets.mac_layout import (
 )
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES, check_family, family
-from fastmac_exp.io import load_cloud
-from fastmac_exp.resolution import COMPUTED_FAMILIES, FIXED_RESOLUTION, file_resolution
-from fastmac_exp.transforms import check_rigid
+from fastmac_exp.geometry.resolution import COMPUTED_FAMILIES, FIXED_RESOLUTION
+from fastmac_exp.geometry.transforms import check_rigid
+from fastmac_exp.io import file_resolution, load_cloud
 from fastmac_exp.types import Pair
 
 FRAGMENTS_WHERE = (

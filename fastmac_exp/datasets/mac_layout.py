@@ -27,8 +27,8 @@ from pathlib import Path
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES, family
-from fastmac_exp.io import read_correspondence_array, read_labels, read_matrix
-from fastmac_exp.resolution import FIXED_RESOLUTION, file_resolution
+from fastmac_exp.geometry.resolution import FIXED_RESOLUTION
+from fastmac_exp.io import file_resolution, read_correspondence_array, read_labels, read_matrix
 from fastmac_exp.types import Correspondences, Pair
 
 SCENES_3DMATCH = (

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fastmac_exp.transforms import random_rotation
+from fastmac_exp.geometry.transforms import random_rotation
 from fastmac_exp.types import Correspondences
 
 OUTDOOR_ROOM = (60.0, 60.0, 4.0)  # bench_core's outdoor-like scene (with noise 0.1 m)

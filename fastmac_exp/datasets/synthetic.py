@@ -43,7 +43,7 @@ from fastmac_exp.atomic import save_npz
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
-from fastmac_exp.resolution import resolution_for
+from fastmac_exp.geometry.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 log = logging.getLogger(__name__)

@@ -16,8 +16,8 @@ import numpy as np
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
+from fastmac_exp.geometry.resolution import resolution_for
 from fastmac_exp.io import clean_cloud, read_matrix, read_points
-from fastmac_exp.resolution import resolution_for
 from fastmac_exp.types import Pair
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package

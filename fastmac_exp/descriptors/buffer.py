@@ -560,7 +560,7 @@ class BufferDescriptor(FeatureDescriptor):
 
     name = "buffer"
     default_graph_key = "spinnet"
-    # said when a run starts (experiment.py), until the descriptor is fast
+    # said when a run starts (run/experiment.py), until the descriptor is fast
     cost_note = (
         "BUFFER describes a pair in about 2.5-5 s on a CPU core with INT8 and AVX512-VNNI (3DMatch / "
         "KITTI; about 2-3x that without VNNI or in float32; the 8 default pairs: ~1 min from empty caches); "

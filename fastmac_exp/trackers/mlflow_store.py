@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from fastmac_exp.errors import InputError
-from fastmac_exp.redact import redact_text, split_credentials
+from fastmac_exp.trackers.redact import redact_text, split_credentials
 
 RECORD = "mlflow_run.json"
 INSTALL = 'pip install -e ".[mlflow]" -c constraints.txt'

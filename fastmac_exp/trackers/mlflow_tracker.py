@@ -30,9 +30,9 @@ from typing import Any
 import pandas as pd
 
 from fastmac_exp.pipeline import PairOutcome
-from fastmac_exp.redact import redact_logs
 from fastmac_exp.trackers import mlflow_store as store
 from fastmac_exp.trackers.base import Tracker
+from fastmac_exp.trackers.redact import redact_logs
 from fastmac_exp.trackers.wandb_tracker import hydra_context
 
 log = logging.getLogger(__name__)

@@ -55,7 +55,7 @@ import numpy as np
 import pandas as pd
 
 from fastmac_exp.families import FAMILIES
-from fastmac_exp.metrics import MAC_STAGES
+from fastmac_exp.geometry.metrics import MAC_STAGES
 from fastmac_exp.pipeline import PairOutcome
 from fastmac_exp.trackers.base import Tracker
 

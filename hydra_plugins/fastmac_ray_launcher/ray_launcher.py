@@ -2,7 +2,7 @@
 
 The closest working path to hydra-ray-launcher, which cannot be installed next to this project (every
 release requires cloudpickle<3; joblib 1.6, under hydra-joblib-launcher, requires cloudpickle>=3.0).
-Ray does the scheduling; the work is in fastmac_exp.ray_launch. Hydra finds this class because run.py's
+Ray does the scheduling; the work is in fastmac_exp.run.ray_launch. Hydra finds this class because run.py's
 directory (the checkout) is on sys.path and `hydra_plugins` is a namespace package. Ray is imported only
 when a sweep launches, so Hydra's plugin scan works without the cluster extra.
 """
@@ -33,6 +33,6 @@ class FastmacRayLauncher(Launcher):
         self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from fastmac_exp.ray_launch import launch
+        from fastmac_exp.run.ray_launch import launch
 
         return launch(self, job_overrides, initial_job_idx)

@@ -22,7 +22,7 @@ from fastmac_exp.datasets.scenes.indoor import furnish_room, room_size
 from fastmac_exp.datasets.scenes.meshes import MeshBuilder, RayCaster
 from fastmac_exp.datasets.scenes.outdoor import build_street
 from fastmac_exp.datasets.scenes.sensors import DepthCamera, SpinningLidar, camera_pose, lidar_pose
-from fastmac_exp.transforms import random_rotation, rot_axis_angle
+from fastmac_exp.geometry.transforms import random_rotation, rot_axis_angle
 
 __all__ = [
     "DepthCamera",

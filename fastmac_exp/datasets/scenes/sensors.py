@@ -9,7 +9,7 @@ import numpy as np
 
 from fastmac_exp.datasets.scenes.geometry import make_pose, rot_z
 from fastmac_exp.datasets.scenes.meshes import RayCaster
-from fastmac_exp.transforms import rot_axis_angle
+from fastmac_exp.geometry.transforms import rot_axis_angle
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The end of a sweep: one table of its members (RR, RE, TE, ms, failed pairs), which
-fastmac_exp/callbacks.py prints once every member has finished."""
+fastmac_exp/run/callbacks.py prints once every member has finished."""
 
 from __future__ import annotations
 

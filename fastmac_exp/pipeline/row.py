@@ -25,7 +25,7 @@ UNSET: Any = _Unset()
 
 @dataclass
 class PairRow:
-    """One pair's results; `to_dict()` is the row of the results table (fastmac_exp.results)."""
+    """One pair's results; `to_dict()` is the row of the results table (fastmac_exp.run.results)."""
 
     # the run's labels, set before the pair is loaded
     index: int
@@ -57,7 +57,7 @@ class PairRow:
     clique_size: Any = UNSET
     clique_inliers: Any = UNSET
     pose_inliers: Any = UNSET  # correspondences within the inlier threshold under the pose: a confidence
-    trusted: Any = UNSET  # GT-free: the pose explains more correspondences than chance (fastmac_exp.trust)
+    trusted: Any = UNSET  # GT-free: the pose explains more correspondences than chance (geometry.trust)
     confidence: Any = UNSET  # ... 1 - its false-accept chance, what `trusted` thresholds
     score: Any = UNSET
     n_edges: Any = UNSET

@@ -10,7 +10,7 @@ import numpy as np
 if TYPE_CHECKING:  # pandas is imported where a table is summarised: `import fastmac_exp` stays light
     import pandas as pd
 
-from fastmac_exp.transforms import nearest_rigid, rotation_error_deg, translation_error_m
+from fastmac_exp.geometry.transforms import nearest_rigid, rotation_error_deg, translation_error_m
 
 
 @dataclass

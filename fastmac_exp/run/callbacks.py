@@ -10,9 +10,9 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from fastmac_exp.redact import redact_logs, redact_text
-from fastmac_exp.runlock import held_by
-from fastmac_exp.sweep_summary import sweep_table
+from fastmac_exp.run.runlock import held_by
+from fastmac_exp.run.sweep_summary import sweep_table
+from fastmac_exp.trackers.redact import redact_logs, redact_text
 
 log = logging.getLogger("fastmac_exp")
 

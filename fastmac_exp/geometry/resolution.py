@@ -12,9 +12,6 @@ used by KITTI (quadratic kernel) and FastMAC's sampling graph fixes it at 0.006 
 
 from __future__ import annotations
 
-import functools
-from pathlib import Path
-
 import numpy as np
 
 from fastmac_exp.errors import InputError
@@ -56,16 +53,3 @@ def resolution_for(family: str, src: np.ndarray | None, tgt: np.ndarray | None) 
     if family in COMPUTED_FAMILIES and src is not None and tgt is not None:
         return pair_resolution(src, tgt)
     return FIXED_RESOLUTION
-
-
-@functools.lru_cache(maxsize=512)
-def _file_resolution(path: str, mtime_ns: int, size: int) -> float:
-    from fastmac_exp.io import load_cloud
-
-    return mesh_resolution(load_cloud(Path(path)))
-
-
-def file_resolution(path: str | Path) -> float:
-    """mr of a cloud file, remembered per (path, modification time, size): fragments recur across pairs."""
-    st = Path(path).stat()
-    return _file_resolution(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)

@@ -7,7 +7,7 @@ read and concatenated, then aggregated per dataset x descriptor x sampler x rati
 pairs, failed, RR (%), mean RE (deg) and TE (cm) over the successful pairs, the median time per stage
 and in total (ms), and, where a configuration ran with several seeds, the mean and standard deviation
 of RR across seeds. Written to <out>/report.md (markdown tables), <out>/report.csv (every aggregate
-column) and PNG plots (see fastmac_exp.plots); <out> defaults to <dir>/report.
+column) and PNG plots (see fastmac_exp.report.plots); <out> defaults to <dir>/report.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
-from fastmac_exp.metrics import STAGES, cached_rows
-from fastmac_exp.results import LOG_NAME, load_table, read_rows, to_table
-from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, differences
+from fastmac_exp.geometry.metrics import STAGES, cached_rows
+from fastmac_exp.run.results import LOG_NAME, load_table, read_rows, to_table
+from fastmac_exp.run.resume import CONFIG_NAME, RESUMED_NAME, differences
 
 log = logging.getLogger(__name__)
 
@@ -404,7 +404,7 @@ def make_report(
     agg.to_csv(out_dir / "report.csv", index=False)
     written: list[Path] = []
     if plots:
-        from fastmac_exp.plots import plot_all
+        from fastmac_exp.report.plots import plot_all
 
         written = plot_all(agg, out_dir)
     pictures = pair_snapshots(root, table, out_dir, snapshots)
@@ -426,7 +426,7 @@ def _to_mlflow(root: Path, out_dir: Path, all_runs: bool, uri: str | None) -> in
 
     if not all_runs and not (root / RECORD).is_file():
         return None
-    from fastmac_exp.trackers import mlflow_upload
+    from fastmac_exp.report import mlflow_upload
 
     try:
         if all_runs:

@@ -15,15 +15,15 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from fastmac_exp.backends.base import Backend
-from fastmac_exp.cache import CorrespondenceCache
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
-from fastmac_exp.metrics import pose_errors
-from fastmac_exp.offset import common_offset, moved_pair, pair_offset, result_to_original, translate
+from fastmac_exp.geometry.metrics import pose_errors
+from fastmac_exp.geometry.offset import common_offset, moved_pair, pair_offset, result_to_original, translate
+from fastmac_exp.geometry.trust import assess
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
-from fastmac_exp.row import PairRow
+from fastmac_exp.pipeline.cache import CorrespondenceCache
+from fastmac_exp.pipeline.row import PairRow
 from fastmac_exp.samplers import Sampler, SampleResult
-from fastmac_exp.trust import assess
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
 PROTOCOLS = ("honest", "reference")
@@ -65,7 +65,7 @@ def run_pair(
     row = row if row is not None else PairRow(index=0, pair=pair.name, dataset="", descriptor=descriptor.name,
                                               sampler=sampler.name, backend=getattr(backend, "name", ""),
                                               ratio=ratio, seed=0, protocol=protocol)  # fmt: skip
-    # Georeferenced pairs are moved once, here, to a frame at the pair's centre (fastmac_exp.offset):
+    # Georeferenced pairs are moved once, here, to a frame at the pair's centre (fastmac_exp.geometry.offset):
     # describe, sample, register and evaluate (TE at the scene, not at the frame's far origin) work in it,
     # and the pose and the correspondences go back to the original frame on the way out.
     offset = pair_offset(pair)

@@ -41,8 +41,8 @@ def check_members(argv: list[str]) -> str | None:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from fastmac_exp.checks import check_run_keys
-    from fastmac_exp.experiment import Components
+    from fastmac_exp.run.checks import check_run_keys
+    from fastmac_exp.run.experiment import Components
 
     try:
         members = sweep_members(argv)

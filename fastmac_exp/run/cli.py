@@ -19,8 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp.errors import InputError, own_error
 from fastmac_exp.resources import config_dir
-from fastmac_exp.resume import is_auto, latest_run
-from fastmac_exp.runlock import RunLocked
+from fastmac_exp.run.resume import is_auto, latest_run
+from fastmac_exp.run.runlock import RunLocked
 from fastmac_exp.samplers import ratio_used
 
 log = logging.getLogger("fastmac_exp")
@@ -122,7 +122,7 @@ def drop_if_empty(run_dir: Path, keep_log_in: Path | None = None) -> None:
 
 @hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="config")
 def main(cfg: DictConfig) -> float:
-    from fastmac_exp.experiment import format_summary, run_experiment
+    from fastmac_exp.run.experiment import format_summary, run_experiment
 
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
@@ -302,7 +302,7 @@ def run() -> None:
     """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
     hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
     if not hint and {"-m", "--multirun"} & set(sys.argv[1:]):
-        from fastmac_exp.sweep_check import check_members
+        from fastmac_exp.run.sweep_check import check_members
 
         hint = check_members(sys.argv[1:])
     if hint:

@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
-from fastmac_exp.metrics import MAC_STAGES  # noqa: E402
+from fastmac_exp.geometry.metrics import MAC_STAGES  # noqa: E402
 
 PROFILE_STAGES = MAC_STAGES
 STAGE_NAMES = {"sampling": "Sampling", "graph": "GC", "cliques": "MCS", "selection": "NCS", "pose": "PE"}

@@ -19,18 +19,18 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
-from fastmac_exp.cache import CorrespondenceCache
-from fastmac_exp.checks import check_run_keys, run_ratio, run_samples
 from fastmac_exp.errors import InputError
-from fastmac_exp.metrics import summarize
+from fastmac_exp.geometry.metrics import summarize
+from fastmac_exp.geometry.trust import TRUST_LEVEL
 from fastmac_exp.pipeline import PairOutcome, run_pair
-from fastmac_exp.redact import redact
+from fastmac_exp.pipeline.cache import CorrespondenceCache
+from fastmac_exp.pipeline.row import PairRow
 from fastmac_exp.resources import find_file
-from fastmac_exp.results import ResultsLog, pose_file, pose_matrix, write_pose
-from fastmac_exp.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
-from fastmac_exp.row import PairRow
-from fastmac_exp.runlock import RunLock
-from fastmac_exp.trust import TRUST_LEVEL
+from fastmac_exp.run.checks import check_run_keys, run_ratio, run_samples
+from fastmac_exp.run.results import ResultsLog, pose_file, pose_matrix, write_pose
+from fastmac_exp.run.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
+from fastmac_exp.run.runlock import RunLock
+from fastmac_exp.trackers.redact import redact
 
 log = logging.getLogger(__name__)
 
@@ -413,7 +413,7 @@ def untrusted_line(row: dict[str, Any]) -> str:
 
 
 def untrusted_pairs(table: pd.DataFrame) -> list[str]:
-    """The pairs whose pose the GT-free check does not trust (fastmac_exp.trust), failed pairs aside."""
+    """The pairs whose pose the GT-free check does not trust (geometry.trust), failed pairs aside."""
     if "trusted" not in table or not len(table):
         return []
     errors = table["error"].fillna("").astype(str).ne("") if "error" in table else False

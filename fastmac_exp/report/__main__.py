@@ -1,0 +1,5 @@
+import sys
+
+from fastmac_exp.report.tables import main
+
+sys.exit(main())
