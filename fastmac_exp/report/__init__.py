@@ -1,5 +1,8 @@
-"""Paper-style reports of runs and sweeps (`python -m fastmac_exp.report`)."""
+"""Paper-style reports of runs and sweeps: the results as one table and its aggregate (tables), the
+markdown page with its plots and pair pictures (page, plots), and `python -m fastmac_exp.report` (cli)."""
 
+from fastmac_exp.report.cli import main
+from fastmac_exp.report.page import make_report, markdown_table, pair_snapshots, render_markdown, worst_first
 from fastmac_exp.report.tables import (
     GROUP_KEYS,
     aggregate,
@@ -7,14 +10,8 @@ from fastmac_exp.report.tables import (
     group_keys,
     load_results,
     load_run,
-    main,
-    make_report,
-    markdown_table,
     merge_same_experiments,
     method_label,
-    pair_snapshots,
-    render_markdown,
-    worst_first,
 )
 
 __all__ = [

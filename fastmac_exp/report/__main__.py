@@ -1,5 +1,5 @@
 import sys
 
-from fastmac_exp.report.tables import main
+from fastmac_exp.report.cli import main
 
 sys.exit(main())
