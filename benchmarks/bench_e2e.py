@@ -45,6 +45,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.machine import cpu_model, load  # noqa: E402
 from fastmac_exp import core  # noqa: E402
+from fastmac_exp.backends.peers import kiss_matcher_pose  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor, fpfh_features, match_features  # noqa: E402
 from fastmac_exp.errors import FastMacError  # noqa: E402
 from fastmac_exp.geometry.metrics import pose_errors  # noqa: E402
@@ -113,12 +114,8 @@ def kiss_once(pair: Pair, inputs) -> tuple[np.ndarray, dict[str, float]]:
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(pair.voxel_size))
     sol = matcher.estimate(src, tgt)
     ms = (time.perf_counter() - t0) * 1e3
-    pose = np.eye(4)
-    pose[:3, :3] = np.asarray(sol.rotation)
-    pose[:3, 3] = np.asarray(sol.translation).ravel()
-    if not sol.valid:
-        pose = np.full((4, 4), np.nan)
-    return pose, {"total": ms}
+    pose = kiss_matcher_pose(sol)
+    return (np.full((4, 4), np.nan) if pose is None else pose), {"total": ms}
 
 
 def ransac_once(pair: Pair, seed: int = 0) -> tuple[np.ndarray, dict[str, float]]:

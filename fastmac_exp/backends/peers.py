@@ -112,9 +112,17 @@ class KissMatcherBackend:
         t0 = time.perf_counter()
         sol = matcher.prune_and_solve(src, tgt)
         ms = (time.perf_counter() - t0) * 1e3
-        pose = np.eye(4)
-        pose[:3, :3] = np.asarray(sol.rotation)
-        pose[:3, 3] = np.asarray(sol.translation).ravel()
-        if not sol.valid:
+        pose = kiss_matcher_pose(sol)
+        if pose is None:
             raise RegistrationFailed("kiss-matcher found no valid solution")
         return _result(pose, len(corr), ms)
+
+
+def kiss_matcher_pose(sol) -> np.ndarray | None:
+    """The 4x4 pose of a KISS-Matcher solution, None where the solver found no valid one."""
+    if not sol.valid:
+        return None
+    pose = np.eye(4)
+    pose[:3, :3] = np.asarray(sol.rotation)
+    pose[:3, 3] = np.asarray(sol.translation).ravel()
+    return pose
