@@ -17,28 +17,16 @@ from __future__ import annotations
 import numpy as np
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.keypoints import keypoints, require_keypoints, resolve_impl, voxel_down
+from fastmac_exp.descriptors.keypoints import resolve_impl
+from fastmac_exp.descriptors.keypoints import voxel_keypoints as finite_voxel_keypoints
 from fastmac_exp.descriptors.matching import correspondences_from_features, correspondences_from_kept_sources
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
 
 def voxel_keypoints(points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "auto") -> np.ndarray:
-    """FPFH's keypoints: the voxel centroids of the cloud's finite points (descriptors/keypoints.py; the core
-    drops non-finite rows itself, without a filtered copy of the cloud)."""
-    if voxel is None or not voxel > 0:
-        raise InputError(f"FPFH voxel size must be positive, got {voxel}")
-    if resolve_impl(impl) != "core":
-        return keypoints(points, voxel, what, impl)[1]
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
-    try:
-        kp = voxel_down(np.ascontiguousarray(pts), voxel, "core")
-    except InputError as exc:
-        raise InputError(f"{what}: {exc}") from None
-    require_keypoints(kp, len(pts), voxel, what, who="FPFH")
-    return kp
+    """FPFH's keypoints: the voxel centroids of the cloud's finite points (descriptors/keypoints.py)."""
+    return finite_voxel_keypoints(points, voxel, what, impl, who="FPFH")
 
 
 def core_fpfh(

@@ -57,15 +57,32 @@ def keypoints(
     points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "open3d"
 ) -> tuple[np.ndarray, np.ndarray]:
     """(the cleaned cloud, its voxel keypoints at `voxel`); InputError below MIN_POINTS keypoints."""
-    if voxel is None or not voxel > 0:
-        raise InputError(f"descriptor voxel size must be positive, got {voxel}")
     pts = clean_points(points, what)
+    return pts, _keypoints_of(pts, voxel, what, impl, "the descriptor")
+
+
+def voxel_keypoints(
+    points: np.ndarray, voxel: float, what: str = "cloud", impl: str = "open3d", who: str = "the descriptor"
+) -> np.ndarray:
+    """The voxel keypoints of the cloud's finite points alone: the core drops non-finite rows itself, so it
+    gets the cloud as given, without a cleaned copy."""
+    if resolve_impl(impl) != "core":
+        return keypoints(points, voxel, what, impl)[1]
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}")
+    return _keypoints_of(np.ascontiguousarray(pts), voxel, what, impl, who)
+
+
+def _keypoints_of(pts: np.ndarray, voxel: float, what: str, impl: str, who: str) -> np.ndarray:
+    if voxel is None or not voxel > 0:
+        raise InputError(f"{who}: voxel size must be positive, got {voxel}")
     try:
         kp = voxel_down(pts, voxel, impl)
     except InputError as exc:
         raise InputError(f"{what}: {exc}") from None
-    require_keypoints(kp, len(pts), voxel, what)
-    return pts, kp
+    require_keypoints(kp, len(pts), voxel, what, who)
+    return kp
 
 
 def require_keypoints(
