@@ -355,7 +355,7 @@ def test_config_and_graph_thresholds():
     assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
     d = instantiate(cfg.descriptor)  # the node as it stands
     assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
-    assert d.precision == "int8" and d.cache_clouds == 8 and d.name == "buffer_int8"  # the run's default
+    assert d.precision == "int8" and d.cache_clouds == 32 and d.name == "buffer_int8"  # the run's default
     assert d.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
     f = instantiate(cfg.descriptor, precision="float32")
     assert f.model_for("kitti").desc_path.name == "buffer_kitti_desc.onnx" and f.name == "buffer"
