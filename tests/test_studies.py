@@ -263,6 +263,10 @@ def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
            "core_commit": "6525ec9" + "0" * 33, "core_sha1": "20e10e1a" + "0" * 32, "code_commit": "abc",
            "cpu": "AMD EPYC", "nproc": 2}  # fmt: skip
     (sweep / "ran.json").write_text(json.dumps(ran))
+    (studies / "run_studies.log").write_text(
+        "[06:03:39] python run.py -m +experiment=sampling_strategy hydra.sweep.dir="
+        "outputs/studies/sampling_strategy_3dmatch/sweep\n[06:20:00]   done in 981 s\n"
+    )
     docs.mkdir()
     (docs / "results.md").write_text(
         "# R\n\nC++ core: the extension built from commit `cb48309e3322` (copied once).\n\n"
@@ -287,3 +291,5 @@ def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
     assert [h[:14] for h in heads[-5:]] == [
         "## 7. State of", "## 8. Estimate", "## 10. Raw clo", "## Notes", "## What ran"]  # fmt: skip
     assert "KEEP-8b" in md[md.index("## 8. ") : md.index("## 10. ")]
+    row = _table_row(md, "## What ran", "`sampling_strategy_3dmatch/sweep`")
+    assert row[1:] == ["981", "06:03", "1.45 → 3.10"]
