@@ -75,7 +75,7 @@ record() {  # record <dir> <started> <load at start> <seconds> <status>: <dir>/r
   core_sha1=$(sed -n 's/^sha1 //p' "$OUT/_core/info.txt")
   printf '{"started": "%s", "ended": "%s", "wall_s": %d, "status": "%s", "load_start": "%s", "load_end": "%s", "core_commit": "%s", "core_sha1": "%s", "code_commit": "%s", "cpu": "%s", "nproc": %d}\n' \
     "$2" "$(date -u +%FT%TZ)" "$4" "$5" "$3" "$(cut -d' ' -f1-3 /proc/loadavg)" "$core_commit" "$core_sha1" \
-    "$(git rev-parse HEAD)" "$cpu_model" "$(nproc)" >"$1/ran.json"
+    "$(git rev-parse HEAD)" "$cpu_model" "$(getconf _NPROCESSORS_ONLN)" >"$1/ran.json"
 }
 
 sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, timed into the log
