@@ -25,6 +25,7 @@ from studies.common import (
     Page,
     data_heading,
     fnum,
+    per_seed_pairs,
     row_of,
     rr_cell,
     rr_mean,
@@ -77,7 +78,7 @@ def _claim(page: Page, data: str, t, a, descs: list[str]) -> str:
     ev = ", ".join(
         f"{d} {fnum(rr_mean(row_of(a, d, 1.0)))} → {fnum(rr_mean(row_of(a, d, 0.01)))}" for d in descs
     )
-    page.claim(CLAIM, verdict, f"{data}: RR 100 % → 1 %: {ev}")
+    page.claim(CLAIM, verdict, f"{data} ({per_seed_pairs(a)}): RR 100 % → 1 %: {ev}")  # its own pair count
     return (
         f"Paper's claim (*{CLAIM}*), here: **{verdict}**. RR at 100 % → 1 %: {ev} (one pair = "
         f"{one:.1f} points; strong: {', '.join(strong) or 'none'})."

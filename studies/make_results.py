@@ -98,16 +98,13 @@ def ran_line(records: list[dict]) -> str:
     t0 = min(datetime.fromisoformat(r["started"].replace("Z", "+00:00")) for r in records)
     t1 = max(datetime.fromisoformat(r["ended"].replace("Z", "+00:00")) for r in records)
     loads = [float(r[k].split()[0]) for r in records for k in ("load_start", "load_end")]
-    means = [float(r["load_end"].split()[2]) for r in records]  # the 15-minute mean at each sweep's end
     failed = [r for r in records if r.get("status") != "done"]
     return (
         f"_Ran on the C++ core of commit `{'`, `'.join(cores)}` (extension sha1 {', '.join(sha)}), "
         f"{t0:%Y-%m-%d %H:%M}–{t1:%H:%M} UTC, {len(records)} sweep(s), "
         f"{sum(int(r['wall_s']) for r in records):,} s of wall time in all, on {records[0]['cpu']} "
-        f"({records[0]['nproc']} cores): load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
-        f"sweeps' starts and ends, 15-min mean {min(means):.1f}–{max(means):.1f} at their ends"
-        + (f"; {len(failed)} sweep(s) failed" if failed else "")
-        + "._"
+        f"({records[0]['nproc']} cores), load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
+        "sweeps' starts and ends" + (f"; {len(failed)} sweep(s) failed" if failed else "") + "._"
     )
 
 
