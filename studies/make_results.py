@@ -178,12 +178,16 @@ def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str
 
 
 def make_results(studies: Path, docs: Path) -> str:
-    """Write <docs>/results.md, <docs>/figures/ (emptied first) and <docs>/results/; returns the page."""
+    """Write <docs>/results.md, <docs>/figures/ (emptied first of all but the figures other pages of <docs>
+    show) and <docs>/results/; returns the page."""
     page = Page(studies=studies, docs=docs)
     old = (docs / "results.md").read_text() if (docs / "results.md").exists() else ""
-    if page.fig.exists():
-        shutil.rmtree(page.fig)
-    page.fig.mkdir(parents=True)
+    if page.fig.exists():  # the figures of the last page go; those other pages of <docs> show stay
+        others = "".join(f.read_text() for f in docs.glob("*.md") if f.name != "results.md")
+        for f in page.fig.iterdir():
+            if f"figures/{f.name}" not in others:
+                shutil.rmtree(f) if f.is_dir() else f.unlink()
+    page.fig.mkdir(parents=True, exist_ok=True)
     sampling_strategy.render(page)
     filter_ablation.render(page)
     signal_ablation.render(page)

@@ -249,9 +249,10 @@ def test_descriptor_study_splices_section_5(tmp_path):
 
 
 def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
-    """Section 1 ran here (its sweep's ran.json): a line under its heading names the core, when and the load;
-    section 5 did not run: the previous page's text stays, said so with the previous core; sections 8 and 10
-    (their own scripts') stay as they were, in order, before the notes."""
+    """Another page's figure survives; section 1 ran here (its sweep's ran.json): a line under its heading
+    names the core, when and the load; section 5 did not run: the previous page's text stays, said so with
+    the previous core; sections 8 and 10 (their own scripts') stay as they were, in order, before the
+    notes."""
     import json
 
     studies, docs = tmp_path / "studies", tmp_path / "docs"
@@ -273,7 +274,14 @@ def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
         "## 1. Sampling\n\nOLD-1\n\n## 5. Descriptor robustness (paper Fig. desc)\n\nOLD-5\n\n"
         "## 8. Estimated\n\nKEEP-8\n\n### sub\n\nKEEP-8b\n\n## 10. Raw clouds\n\nKEEP-10\n\n## Notes\n\n- n\n"
     )
+    (docs / "figures").mkdir()
+    for name in ("tracking.png", "sampling_strategy.png", "gone.png"):
+        (docs / "figures" / name).write_bytes(b"png")
+    (docs / "tracking.md").write_text("![ui](figures/tracking.png)\n")
     md = make_results.make_results(studies, docs)
+    figures = sorted(f.name for f in (docs / "figures").iterdir())
+    assert figures == ["sampling_strategy.png", "tracking.png"]  # another page's figure stays, the old go
+    assert (docs / "figures" / "sampling_strategy.png").read_bytes() != b"png"  # drawn again
     one = md[md.index("## 1. Sampling strategy") : md.index("## 2. ")]
     assert "OLD-1" not in md
     assert one.splitlines()[2] == (
