@@ -17,6 +17,8 @@
 #          (the real pairs of ../shared/data, dataset=shared_real by category)
 # Each sweep's directory is deleted first (RESUME=1 keeps it): a run directory that already holds results
 # is refused without resume=, and with it resumed (its finished pairs skipped whatever the config).
+# Each sweep writes <its directory>/ran.json (start, end, wall time, load averages, the core's commit), which
+# make_results prints under the study's section and in the wall-time table.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -142,7 +144,8 @@ for study in "${STUDIES[@]}"; do
     descriptor)  # Fig. desc: every descriptor (fpfh, fcgf_lite, buffer, spinnet) on KITTI (the KITTI-like family and
       # the 7 real outdoor pairs) and indoors (the 3DMatch-like family and the 4 real indoor pairs), the first
       # $DESC_N synthetic pairs, seeds $DESC_SEEDS. SpinNet (~1 min a cloud on this CPU) and BUFFER describe each
-      # pair once per seed: the correspondence cache (a private one, emptied first) serves every ratio.
+      # cloud once a sweep whatever the seeds (the process keeps the described clouds, descriptor.cache_clouds),
+      # and the correspondence cache (a private one, emptied first) serves every ratio: 3 seeds took 32 min.
       [ "${DESC_KEEP_CACHE:-0}" = 1 ] || rm -rf "$OUT/_cache_descriptor"  # 1: a concurrent second invocation
       for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch}; do
         lim=""; synthetic "$d" && lim="limit=${DESC_N:-6}"
