@@ -302,10 +302,14 @@ def wall_times(studies: Path) -> list[str]:
             done.pop(key, None)
             done[key] = (cmd, int(m.group(1)))
             cmd = None
-    rows = [[f"`{k}`", str(s)] for k, (_, s) in done.items()]
+    ran = {k: _ran(studies, k) for k in done}
+    with_ran = any(ran.values())
+    rows = [[f"`{k}`", str(s)] + (_ran_cells(ran[k]) if with_ran else []) for k, (_, s) in done.items()]
     total = sum(s for _, s in done.values())
-    rows.append(["**total**", f"**{total} s ({total / 60:.0f} min)**"])
-    out = [markdown_table(["sweep (outputs/studies/…)", "wall time (s)"], rows, ["l", "r"]), ""]
+    rows.append(["**total**", f"**{total} s ({total / 60:.0f} min)**"] + (["", ""] if with_ran else []))
+    header = ["sweep (outputs/studies/…)", "wall time (s)"]
+    header += ["started (UTC)", "load average (1 min) at start → end"] if with_ran else []
+    out = [markdown_table(header, rows, ["l", "r"] + (["l", "l"] if with_ran else [])), ""]
     cmds = [c for c, _ in done.values()]
     note = (
         " (logged before `dataset.limit` became the run key `limit`: write `limit=N` today)"
@@ -314,6 +318,21 @@ def wall_times(studies: Path) -> list[str]:
     )
     out += [f"Commands as logged{note}:", "", "```", *cmds, "```", ""]
     return out
+
+
+def _ran(studies: Path, key: str) -> dict | None:
+    """The ran.json run_studies.sh wrote for the sweep logged as `key` (None: none)."""
+    import json
+
+    d = studies / ("sampler_timing" if key.startswith("python -m studies.time_samplers") else key)
+    f = d / "ran.json"
+    return json.loads(f.read_text()) if f.is_file() else None
+
+
+def _ran_cells(r: dict | None) -> list[str]:
+    if r is None:
+        return ["", ""]
+    return [r["started"][11:16], f"{r['load_start'].split()[0]} → {r['load_end'].split()[0]}"]
 
 
 def replace_section(page: Path, heading: str, block: str) -> None:

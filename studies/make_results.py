@@ -15,10 +15,13 @@ descriptor_robustness, time_profile, state_of_the_art.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
+import re
 import shutil
 import subprocess
+from datetime import datetime
 from pathlib import Path
 
 from studies import (
@@ -58,7 +61,101 @@ def core_info(studies: Path) -> str:
     if not info.exists():
         return ""
     lines = dict(line.split(" ", 1) for line in info.read_text().splitlines() if " " in line)
-    return f" C++ core: the extension built from commit `{lines.get('commit', '?')[:12]}` (copied once)."
+    commit = lines.get("cpp_commit", lines.get("commit", "?"))  # cpp_commit: the last that changed the C++
+    return f" C++ core: the extension built from commit `{commit[:12]}` (copied once)."
+
+
+# section number -> the directories below the studies directory whose sweeps it reads (each sweep's ran.json,
+# written by run_studies.sh, names the core, when it ran and the load it ran under)
+SECTION_RUNS = {
+    1: ["sampling_strategy_*"],
+    2: ["filter_ablation_*"],
+    3: ["signal_ablation_*"],
+    4: ["stochastic_vs_deterministic_*", "sampler_timing"],
+    5: ["descriptor_robustness_*"],
+    6: ["time_profile_*"],
+    7: ["state_of_the_art_*"],
+}
+SECTION = re.compile(r"^## (\d+)\. ", re.M)
+RAN = re.compile(r"_(Ran on|Not rerun on) ")
+
+
+def ran_records(studies: Path, patterns: list[str]) -> list[dict]:
+    """The ran.json of every sweep below the directories `patterns` (globs in <studies>)."""
+    out = []
+    for pattern in patterns:
+        for d in sorted(studies.glob(pattern)):
+            for f in sorted([d / "ran.json", *d.glob("*/ran.json")]):
+                if f.is_file():
+                    out.append(json.loads(f.read_text()))
+    return out
+
+
+def ran_line(records: list[dict]) -> str:
+    """One line: the core the sweeps ran on, when, their wall time and the load they ran under."""
+    cores = sorted({r["core_commit"][:7] for r in records})
+    sha = sorted({r["core_sha1"][:8] for r in records})
+    t0 = min(datetime.fromisoformat(r["started"].replace("Z", "+00:00")) for r in records)
+    t1 = max(datetime.fromisoformat(r["ended"].replace("Z", "+00:00")) for r in records)
+    loads = [float(r[k].split()[0]) for r in records for k in ("load_start", "load_end")]
+    failed = [r for r in records if r.get("status") != "done"]
+    return (
+        f"_Ran on the C++ core of commit `{'`, `'.join(cores)}` (extension sha1 {', '.join(sha)}), "
+        f"{t0:%Y-%m-%d %H:%M}–{t1:%H:%M} UTC, {len(records)} sweep(s), "
+        f"{sum(int(r['wall_s']) for r in records):,} s of wall time in all, on {records[0]['cpu']} "
+        f"({records[0]['nproc']} cores), load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
+        "sweeps' starts and ends" + (f"; {len(failed)} sweep(s) failed" if failed else "") + "._"
+    )
+
+
+def sections_of(md: str) -> dict[int, str]:
+    """The numbered sections ("## N. ...") of a page, each up to the next "## " heading."""
+    out = {}
+    for m in SECTION.finditer(md):
+        nxt = md.find("\n## ", m.end())
+        out[int(m.group(1))] = md[m.start() : nxt + 1 if nxt >= 0 else len(md)].rstrip() + "\n"
+    return out
+
+
+def previous_core(md: str) -> str:
+    """The core the previous page names in its head ("built from commit `...`"), or "?"."""
+    m = re.search(r"built from commit `([0-9a-f]+)`", md)
+    return m.group(1)[:7] if m else "?"
+
+
+def place_sections(lines: list[str], studies: Path, old: str) -> list[str]:
+    """Sections 1-7 with the line naming their core under each heading; a section whose study did not run
+    here (no ran.json) keeps the previous page's text, said so; the previous page's sections past 7 (written
+    by their own scripts or by hand: 8 estimated scores, 9 keep size, 10 raw clouds to a pose) kept as
+    they were, before the notes."""
+    md = "\n".join(lines)
+    before = sections_of(old)
+    new = sections_of(md)
+    for n, patterns in SECTION_RUNS.items():
+        if n not in new:
+            continue
+        records = ran_records(studies, patterns)
+        if records:
+            head, _, rest = new[n].partition("\n")
+            block = f"{head}\n\n{ran_line(records)}\n{rest}"
+        elif n in before:
+            head, _, rest = before[n].partition("\n")
+            if RAN.match(rest.lstrip("\n")):  # the previous page's own line says where it ran
+                block = before[n]
+            else:
+                core = previous_core(old)
+                said = (
+                    f"_Not rerun on this core: the section as the previous page had it (C++ core `{core}`)._"
+                )
+                block = f"{head}\n\n{said}\n{rest}"
+        else:
+            continue
+        md = md.replace(new[n], block, 1)
+    kept = "".join(block + "\n" for k, block in sorted(before.items()) if k > max(SECTION_RUNS))
+    if kept:
+        at = md.index("\n## Notes") + 1 if "\n## Notes" in md else len(md)
+        md = md[:at] + kept + md[at:]
+    return md.split("\n")
 
 
 def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str]) -> list[str]:
@@ -81,11 +178,16 @@ def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str
 
 
 def make_results(studies: Path, docs: Path) -> str:
-    """Write <docs>/results.md, <docs>/figures/ (emptied first) and <docs>/results/; returns the page."""
+    """Write <docs>/results.md, <docs>/figures/ (emptied first of all but the figures other pages of <docs>
+    show) and <docs>/results/; returns the page."""
     page = Page(studies=studies, docs=docs)
-    if page.fig.exists():
-        shutil.rmtree(page.fig)
-    page.fig.mkdir(parents=True)
+    old = (docs / "results.md").read_text() if (docs / "results.md").exists() else ""
+    if page.fig.exists():  # the figures of the last page go; those other pages of <docs> show stay
+        others = "".join(f.read_text() for f in docs.glob("*.md") if f.name != "results.md")
+        for f in page.fig.iterdir():
+            if f"figures/{f.name}" not in others:
+                shutil.rmtree(f) if f.is_dir() else f.unlink()
+    page.fig.mkdir(parents=True, exist_ok=True)
     sampling_strategy.render(page)
     filter_ablation.render(page)
     signal_ablation.render(page)
@@ -103,6 +205,7 @@ def make_results(studies: Path, docs: Path) -> str:
     verdict = text("claims") + (render_claims(page.claims, page.pair_counts) or ["(no studies found)"]) + [""]
     notes = ["## Notes", ""] + [f"- {n}" for n in page.notes] + [""]
     lines = head + text("summary") + verdict + page.md + notes + text("what_ran") + wall_times(studies)
+    lines = place_sections(lines, studies, old)
     md = "\n".join(lines).rstrip() + "\n"
     (docs / "results.md").write_text(md)
     return md

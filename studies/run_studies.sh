@@ -17,6 +17,8 @@
 #          (the real pairs of ../shared/data, dataset=shared_real by category)
 # Each sweep's directory is deleted first (RESUME=1 keeps it): a run directory that already holds results
 # is refused without resume=, and with it resumed (its finished pairs skipped whatever the config).
+# Each sweep writes <its directory>/ran.json (start, end, wall time, load averages, the core's commit), which
+# make_results prints under the study's section and in the wall-time table.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -48,7 +50,8 @@ if [ ! -f "$CORE" ]; then
   src=$(env -u FASTMAC_CORE_SO python -c "import importlib.util as u; print(u.find_spec('fastmac_exp._mac_core').origin)")
   cp "$src" "$CORE"
   { echo "copied $(date -u +%FT%TZ) from $src"; echo "sha1 $(sha1sum "$CORE" | cut -c1-40)";
-    echo "commit $(git rev-parse HEAD)$(git diff --quiet HEAD -- fastmac_exp/_cpp || echo ' + uncommitted C++ changes')"; } >"$OUT/_core/info.txt"
+    echo "commit $(git rev-parse HEAD)$(git diff --quiet HEAD -- fastmac_exp/_cpp || echo ' + uncommitted C++ changes')"
+    echo "cpp_commit $(git log -1 --format=%H -- fastmac_exp/_cpp)"; } >"$OUT/_core/info.txt"
 fi
 export FASTMAC_CORE_SO=$PWD/$CORE
 
@@ -64,10 +67,24 @@ data_args() {  # the dataset overrides for one data key
 
 synthetic() { case $1 in 3dmatch | kitti | 3dlomatch) return 0 ;; *) return 1 ;; esac; }
 
+cpu_model=$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1)
+record() {  # record <dir> <started> <load at start> <seconds> <status>: <dir>/ran.json, which make_results
+  # prints under the study's section (the core, when, and the load it ran under)
+  mkdir -p "$1"
+  local core_commit core_sha1
+  core_commit=$(sed -n 's/^cpp_commit //p' "$OUT/_core/info.txt")  # the last commit that changed the C++
+  [ -n "$core_commit" ] || core_commit=$(sed -n 's/^commit //p' "$OUT/_core/info.txt")
+  core_sha1=$(sed -n 's/^sha1 //p' "$OUT/_core/info.txt")
+  printf '{"started": "%s", "ended": "%s", "wall_s": %d, "status": "%s", "load_start": "%s", "load_end": "%s", "core_commit": "%s", "core_sha1": "%s", "code_commit": "%s", "cpu": "%s", "nproc": %d}\n' \
+    "$2" "$(date -u +%FT%TZ)" "$4" "$5" "$3" "$(cut -d' ' -f1-3 /proc/loadavg)" "$core_commit" "$core_sha1" \
+    "$(git rev-parse HEAD)" "$cpu_model" "$(getconf _NPROCESSORS_ONLN)" >"$1/ran.json"
+}
+
 sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, timed into the log
   local dir=$1; shift
   [ "${RESUME:-0}" = 1 ] || rm -rf "$dir"  # RESUME=1: finish an interrupted sweep instead
-  local t0=$SECONDS attempt
+  local t0=$SECONDS attempt started load0
+  started=$(date -u +%FT%TZ) load0=$(cut -d' ' -f1-3 /proc/loadavg)
   echo "[$(date +%T)] python run.py -m $* ${COMMON[*]} hydra.sweep.dir=$dir" | tee -a "$LOG"
   echo "  code: $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- fastmac_exp || echo ' + uncommitted changes under fastmac_exp/'); C++ core: $CORE" >>"$LOG"
   # a crash (e.g. the C++ extension rebuilt under a running sweep) is retried into the same directory with
@@ -78,12 +95,14 @@ sweep() {  # sweep <dir> <overrides...>: one multirun into a fresh directory, ti
   for attempt in 1 2 3; do
     if python run.py -m "$@" "${COMMON[@]}" ${again[@]+"${again[@]}"} hydra.sweep.dir="$dir" >>"$LOG" 2>&1; then
       echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
+      record "$dir" "$started" "$load0" $((SECONDS - t0)) done
       return 0
     fi
     echo "[$(date +%T)]   attempt $attempt failed; resuming" | tee -a "$LOG"
     again=(resume=auto)  # the finished members and pairs are kept
   done
   echo "[$(date +%T)]   FAILED after 3 attempts" | tee -a "$LOG"
+  record "$dir" "$started" "$load0" $((SECONDS - t0)) failed
   return 1
 }
 
@@ -125,7 +144,8 @@ for study in "${STUDIES[@]}"; do
     descriptor)  # Fig. desc: every descriptor (fpfh, fcgf_lite, buffer, spinnet) on KITTI (the KITTI-like family and
       # the 7 real outdoor pairs) and indoors (the 3DMatch-like family and the 4 real indoor pairs), the first
       # $DESC_N synthetic pairs, seeds $DESC_SEEDS. SpinNet (~1 min a cloud on this CPU) and BUFFER describe each
-      # pair once per seed: the correspondence cache (a private one, emptied first) serves every ratio.
+      # cloud once a sweep whatever the seeds (the process keeps the described clouds, descriptor.cache_clouds),
+      # and the correspondence cache (a private one, emptied first) serves every ratio: 3 seeds took 32 min.
       [ "${DESC_KEEP_CACHE:-0}" = 1 ] || rm -rf "$OUT/_cache_descriptor"  # 1: a concurrent second invocation
       for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch}; do
         lim=""; synthetic "$d" && lim="limit=${DESC_N:-6}"
@@ -152,9 +172,10 @@ for study in "${STUDIES[@]}"; do
         $(data_args kitti) limit=4 ratio=0.05,0.02,0.01 ;;
     timing)  # Fig. stochastic, left: sampling time against the sample count, both samplers
       echo "[$(date +%T)] python -m studies.time_samplers" | tee -a "$LOG"
-      t0=$SECONDS
+      t0=$SECONDS started=$(date -u +%FT%TZ) load0=$(cut -d' ' -f1-3 /proc/loadavg)
       python -m studies.time_samplers --out "$OUT/sampler_timing" --budget-s 150 >>"$LOG" 2>&1
-      echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG" ;;
+      echo "[$(date +%T)]   done in $((SECONDS - t0)) s" | tee -a "$LOG"
+      record "$OUT/sampler_timing" "$started" "$load0" $((SECONDS - t0)) done ;;
     *) echo "unknown study $study" >&2; exit 2 ;;
   esac
 done

@@ -99,7 +99,7 @@ def claim(page: Page, data: str, a: pd.DataFrame, paper: dict) -> None:
     page.claim(
         loss_title(),
         "agrees" if drop <= paper_drop + 100 / n_pairs + 1e-9 else "disagrees",
-        f"{data}: RR {fnum(mac['RR'])} → {fnum(f20['RR'])} % ({n_pairs} pairs), at "
+        f"{data} ({n_pairs} pairs, seed 0): RR {fnum(mac['RR'])} → {fnum(f20['RR'])} %, at "
         f"{ms(mac['t_total_ms'])} → {ms(f20['t_total_ms'])} ms ({speed:.1f}×)",
     )
 

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from fastmac_exp.report import markdown_table, plots
-from studies.common import PAPER_PROFILE, RATIOS, SHORT, Page, data_heading, ms, row_of, text
+from studies.common import PAPER_PROFILE, RATIOS, SHORT, Page, data_heading, ms, per_seed_pairs, row_of, text
 
 STAGES = ("sampling", "graph", "cliques", "selection", "pose", "total")
 HEADER = ["ratio", "Sampling", "GC", "MCS", "NCS", "PE", "total"]
@@ -42,7 +42,8 @@ def render(page: Page) -> None:
             page.claim(
                 title,
                 "agrees" if speed >= 5 else "partly" if speed >= 2 else "disagrees",
-                f"{data}: {ms(mac['t_total_ms'])} → {ms(f20['t_total_ms'])} ms ({speed:.1f}×; MCS "
+                f"{data} ({per_seed_pairs(a)}, seed 0): {ms(mac['t_total_ms'])} → {ms(f20['t_total_ms'])} ms "
+                f"({speed:.1f}×; MCS "
                 f"{ms(mac['t_cliques_ms'])} → {ms(f20['t_cliques_ms'])} ms)",
             )
     if aggs:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,14 @@ from fastmac_exp.types import Correspondences, Pair
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(autouse=True)
+def _no_described_clouds_from_other_tests():
+    """BUFFER and SpinNet keep described clouds process-wide: a test that counts descriptions starts cold."""
+    buffer = sys.modules.get("fastmac_exp.descriptors.buffer")
+    if buffer is not None:
+        buffer.forget_described_clouds()
 
 
 def make_correspondences(

@@ -26,6 +26,7 @@ from fastmac_exp.descriptors.buffer import (
     BufferParams,
     align_rotations,
     check_desc_contract,
+    forget_described_clouds,
     group_cells,
     ref_inputs,
 )
@@ -354,7 +355,7 @@ def test_config_and_graph_thresholds():
     assert cfg.descriptor.graph_key == "spinnet" and cfg.descriptor.model == "auto"
     d = instantiate(cfg.descriptor)  # the node as it stands
     assert isinstance(d, BufferDescriptor) and d.max_correspondences == 5000 and d.graph_key == "spinnet"
-    assert d.precision == "int8" and d.cache_clouds == 8 and d.name == "buffer_int8"  # the run's default
+    assert d.precision == "int8" and d.cache_clouds == 32 and d.name == "buffer_int8"  # the run's default
     assert d.model_for("kitti").desc_path.name == "buffer_kitti_desc_int8.onnx"
     f = instantiate(cfg.descriptor, precision="float32")
     assert f.model_for("kitti").desc_path.name == "buffer_kitti_desc.onnx" and f.name == "buffer"
@@ -425,6 +426,67 @@ def test_cache_describes_a_shared_cloud_once(room):
     assert none.last_timings["keypoints"] == len(kp) and not none._described
     with pytest.raises(InputError):
         BufferDescriptor(cache_clouds=-1)
+
+
+class CountingSession:
+    """An onnxruntime session that counts its runs (how many times the network ran)."""
+
+    def __init__(self, session) -> None:
+        self.session, self.runs = session, 0
+
+    def run(self, *args, **kwargs):
+        self.runs += 1
+        return self.session.run(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.session, name)
+
+
+def counted(d, which: str = "3dmatch") -> CountingSession:
+    model = d.load(which)
+    model.desc = CountingSession(model.desc)
+    return model.desc
+
+
+def test_instances_share_described_clouds():
+    """A sweep's members are new instances in one process: a second instance describing the same pair runs
+    no network and gives the same correspondences; the run's seed still draws the cap (some other source
+    rows described, as a cold describer gives them); another descriptor seed or other points describe
+    again."""
+    pair = golden_pair("3dmatch")
+
+    def make(**kw):
+        return BufferDescriptor(voxel_size=0.2, max_correspondences=60, threads=1, progress=False, **kw)
+
+    first = make()
+    a = first(pair, np.random.default_rng(0))
+    second = make()
+    runs = counted(second)
+    b = second(pair, np.random.default_rng(0))
+    assert runs.runs == 0 and [t["keypoints"] for t in second.timings_log] == [0, 0]
+    for x, y in ((a.src, b.src), (a.tgt, b.tgt), (a.scores, b.scores)):
+        np.testing.assert_array_equal(x, y)
+    c = second(pair, np.random.default_rng(1))  # another cap: the target reused, new source rows described
+    assert runs.runs > 0 and second.timings_log[-1]["keypoints"] == 0
+    forget_described_clouds()
+    cold = make()(pair, np.random.default_rng(1))
+    np.testing.assert_array_equal(c.src, cold.src)
+    np.testing.assert_array_equal(c.tgt, cold.tgt)
+    np.testing.assert_allclose(c.scores, cold.scores, atol=1e-6)
+    other_seed = make(seed=1)  # its own shuffles: described again
+    runs = counted(other_seed)
+    other_seed(pair, np.random.default_rng(1))
+    assert runs.runs > 0 and other_seed.timings_log[-1]["keypoints"] > 0
+    moved = Pair(name="moved", gt=pair.gt, src_cloud=pair.src_cloud + 0.01, tgt_cloud=pair.tgt_cloud + 0.01,
+                 voxel_size=pair.voxel_size, family=pair.family)  # fmt: skip
+    again = make()
+    runs = counted(again)
+    again(moved, np.random.default_rng(1))
+    assert runs.runs > 0 and again.timings_log[-1]["keypoints"] > 0
+    none = make(cache_clouds=0)  # keeps nothing, and reads nothing the others keep
+    runs = counted(none)
+    none(pair, np.random.default_rng(1))
+    assert runs.runs > 0 and not none._described
 
 
 def test_mutual_matching_describes_every_keypoint():

@@ -34,7 +34,7 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def room_graph() -> dict[str, set[str]]:
-    """room -> the rooms it imports (the root package's own __init__ and __main__ left out: they are the top)."""
+    """room -> the rooms it imports (the root package's __init__ and __main__ left out: they are the top)."""
     graph: dict[str, set[str]] = {}
     for path in PACKAGE.rglob("*.py"):
         rel = path.relative_to(PACKAGE)
@@ -70,7 +70,8 @@ def test_rooms_import_without_a_cycle():
     try:
         order = list(TopologicalSorter(graph).static_order())
     except CycleError as exc:
-        raise AssertionError(f"import cycle between fastmac_exp's rooms: {' -> '.join(exc.args[1])}") from None
+        cycle = " -> ".join(exc.args[1])
+        raise AssertionError(f"import cycle between fastmac_exp's rooms: {cycle}") from None
     assert set(order) >= set(graph)
 
 

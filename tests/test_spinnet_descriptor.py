@@ -145,6 +145,27 @@ def test_rotation_invariance_on_a_real_fragment(desc):
     assert cos > 0.9 and top1 > 0.8, (cos, top1)
 
 
+def test_instances_share_described_clouds_unless_the_patch_grid_differs():
+    """A second SpinNet instance reuses what the first described (no network run, same descriptors); one
+    with another patch-cloud grid (`downsample`, not in BUFFER's key) describes again."""
+    from .test_buffer_descriptor import counted
+    from .test_onnx_descriptor import toy_room
+
+    pts = toy_room(2, spacing=0.02, size=1.5)
+    first = SpinNetDescriptor(keypoints=8, threads=1, progress=False)
+    kp, a = first.features(pts, 0.1)
+    second = SpinNetDescriptor(keypoints=8, threads=1, progress=False)
+    runs = counted(second)
+    kp2, b = second.features(pts, 0.1)
+    assert runs.runs == 0
+    np.testing.assert_array_equal(kp, kp2)
+    np.testing.assert_array_equal(a, b)
+    coarser = SpinNetDescriptor(keypoints=8, threads=1, progress=False, downsample=0.05)
+    runs = counted(coarser)
+    coarser.features(pts, 0.1)
+    assert runs.runs > 0 and coarser.last_timings["keypoints"] == 8
+
+
 def test_config_and_family():
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate

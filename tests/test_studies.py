@@ -186,7 +186,7 @@ def test_make_results_claims_notes_and_layout(page):
         "3DLoMatch 40.88 → 34.31 %; agrees: at most the paper's loss plus one pair)** — real: agrees 1"
         in claims
     )
-    assert "  - real_indoor: RR 100.0 → 75.0 % (4 pairs), at 80.0 → 20.0 ms (4.0×) → agrees" in claims
+    assert "  - real_indoor (4 pairs, seed 0): RR 100.0 → 75.0 %, at 80.0 → 20.0 ms (4.0×) → agrees" in claims
     assert (
         "state of the art, real_indoor, RANSAC 1k: 1 failed pair(s), e.g. `RegistrationFailed: no consensus`"
         in md
@@ -246,3 +246,58 @@ def test_descriptor_study_splices_section_5(tmp_path):
     assert "Mean inlier ratio of the correspondences: fpfh 5.0 %, spinnet 20.0 %." in md
     assert "here: **holds**. RR at 100 % → 1 %: fpfh 100.0 → 75.0, spinnet 100.0 → 100.0" in md
     assert (docs / "figures" / "descriptor_robustness_indoor.png").is_file()
+
+
+def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
+    """Another page's figure survives; section 1 ran here (its sweep's ran.json): a line under its heading
+    names the core, when and the load; section 5 did not run: the previous page's text stays, said so with
+    the previous core; sections 8 and 10 (their own scripts') stay as they were, in order, before the
+    notes."""
+    import json
+
+    studies, docs = tmp_path / "studies", tmp_path / "docs"
+    base = dict(dataset="synthetic", descriptor="fpfh", backend="cpp", seed=0)
+    sweep = studies / "sampling_strategy_3dmatch" / "sweep"
+    _run(sweep / "0", _pairs(4, 3, sampler="highpass", ratio=0.05, **base))
+    ran = {"started": "2026-12-06T06:03:39Z", "ended": "2026-12-06T06:20:00Z", "wall_s": 981,
+           "status": "done", "load_start": "1.45 1.20 1.20", "load_end": "3.10 2.50 1.90",
+           "core_commit": "6525ec9" + "0" * 33, "core_sha1": "20e10e1a" + "0" * 32, "code_commit": "abc",
+           "cpu": "AMD EPYC", "nproc": 2}  # fmt: skip
+    (sweep / "ran.json").write_text(json.dumps(ran))
+    (studies / "run_studies.log").write_text(
+        "[06:03:39] python run.py -m +experiment=sampling_strategy hydra.sweep.dir="
+        "outputs/studies/sampling_strategy_3dmatch/sweep\n[06:20:00]   done in 981 s\n"
+    )
+    docs.mkdir()
+    (docs / "results.md").write_text(
+        "# R\n\nC++ core: the extension built from commit `cb48309e3322` (copied once).\n\n"
+        "## 1. Sampling\n\nOLD-1\n\n## 5. Descriptor robustness (paper Fig. desc)\n\nOLD-5\n\n"
+        "## 8. Estimated\n\nKEEP-8\n\n### sub\n\nKEEP-8b\n\n## 10. Raw clouds\n\nKEEP-10\n\n## Notes\n\n- n\n"
+    )
+    (docs / "figures").mkdir()
+    for name in ("tracking.png", "sampling_strategy.png", "gone.png"):
+        (docs / "figures" / name).write_bytes(b"png")
+    (docs / "tracking.md").write_text("![ui](figures/tracking.png)\n")
+    md = make_results.make_results(studies, docs)
+    figures = sorted(f.name for f in (docs / "figures").iterdir())
+    assert figures == ["sampling_strategy.png", "tracking.png"]  # another page's figure stays, the old go
+    assert (docs / "figures" / "sampling_strategy.png").read_bytes() != b"png"  # drawn again
+    one = md[md.index("## 1. Sampling strategy") : md.index("## 2. ")]
+    assert "OLD-1" not in md
+    assert one.splitlines()[2] == (
+        "_Ran on the C++ core of commit `6525ec9` (extension sha1 20e10e1a), 2026-12-06 06:03–06:20 UTC, "
+        "1 sweep(s), 981 s of wall time in all, on AMD EPYC (2 cores), load average (1 min) 1.4–3.1 at the "
+        "sweeps' starts and ends._"
+    )
+    five = md[md.index("## 5. ") : md.index("## 6. ")]
+    assert five.splitlines()[:5] == [
+        "## 5. Descriptor robustness (paper Fig. desc)", "",
+        "_Not rerun on this core: the section as the previous page had it (C++ core `cb48309`)._",
+        "", "OLD-5"]  # fmt: skip
+    assert "_Ran on" not in md[md.index("## 2. ") : md.index("## 5. ")]  # no ran.json, no old text: as is
+    heads = [ln for ln in md.splitlines() if ln.startswith("## ")]
+    assert [h[:14] for h in heads[-5:]] == [
+        "## 7. State of", "## 8. Estimate", "## 10. Raw clo", "## Notes", "## What ran"]  # fmt: skip
+    assert "KEEP-8b" in md[md.index("## 8. ") : md.index("## 10. ")]
+    row = _table_row(md, "## What ran", "`sampling_strategy_3dmatch/sweep`")
+    assert row[1:] == ["981", "06:03", "1.45 → 3.10"]

@@ -1,5 +1,5 @@
 // Each point's distance to its nearest other point (MAC's mesh resolution is their mean;
-// fastmac_exp/resolution.py), exactly, from a uniform grid: a 3DMatch fragment at full resolution has
+// fastmac_exp/geometry/resolution.py), exactly, from a uniform grid: a 3DMatch fragment at full resolution has
 // 300,000 points, where a single-threaded k-d tree took ~0.3 s a cloud.
 //
 // The cell is sized for about four points an occupied cell. A query looks at its own cell and the 26

@@ -527,6 +527,27 @@ class Described:
     done: np.ndarray
 
 
+class _CloudMemory:
+    """The clouds described in this process, shared by every BUFFER and SpinNet instance that keeps clouds
+    (cache_clouds > 0): Hydra's basic launcher runs a sweep's members in one process, one new descriptor
+    each, so a seed sweep would otherwise describe every cloud again for each seed. The keys hold all that
+    determines a described row (the describer's class, model files, axis, scale, its own seed and
+    settings, the points' digest) and not the run's seed, which draws only the matches' cap."""
+
+    def __init__(self) -> None:
+        self.states: OrderedDict[tuple, CloudState] = OrderedDict()
+        self.described: OrderedDict[tuple, Described] = OrderedDict()
+
+
+_MEMORY = _CloudMemory()
+
+
+def forget_described_clouds() -> None:
+    """Empties the process-wide memory of described clouds (tests that count descriptions)."""
+    _MEMORY.states.clear()
+    _MEMORY.described.clear()
+
+
 def _digest(a: np.ndarray) -> str:
     a = np.ascontiguousarray(a)
     return hashlib.blake2b(a.tobytes(), digest_size=16).hexdigest() + str(a.shape)
@@ -551,9 +572,10 @@ class BufferDescriptor(FeatureDescriptor):
     kept for comparison (descriptors/buffer/MODEL_CARD.md: the Ref axis is better). `precision`:
     "float32" (the exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`: the Desc
     convolutions quantised by descriptors/buffer/quantize.py, about 3x faster; rows labelled
-    `buffer_int8`). `cache_clouds`: how
-    many clouds' preparation and described keypoints are kept in memory (0: none), so a cloud shared by
-    pairs is described once. A pair describes only the source keypoints its correspondences keep (one-way
+    `buffer_int8`). `cache_clouds`: how many clouds' preparation and described keypoints are kept in
+    memory (0: none), so a cloud shared by pairs is described once; the memory is the process's, shared
+    by the instances (a sweep's members: its seeds describe each cloud once, the run's seed drawing only
+    the matches' cap). A pair describes only the source keypoints its correspondences keep (one-way
     matching: the cap's random subset of the source keypoints, drawn as before) and every target
     keypoint.
     """
@@ -638,19 +660,31 @@ class BufferDescriptor(FeatureDescriptor):
         self.cache_clouds = int(cache_clouds)
         self.execution_providers = execution_providers
         self._models: dict = {}
-        self._states: OrderedDict[tuple, CloudState] = OrderedDict()
-        self._described: OrderedDict[tuple, Described] = OrderedDict()
+        self._attach_memory()
         self.last_timings: dict[str, float] = {}
         self.timings_log: list[dict] = []  # one entry a described cloud (the last 1000)
 
     def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
         state = self.__dict__.copy()
         state["_models"] = {}
-        state["_states"], state["_described"] = OrderedDict(), OrderedDict()
+        state["_states"], state["_described"] = None, None  # the receiving process's own memory instead
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
+        self._attach_memory()
+
+    def _attach_memory(self) -> None:
+        """The process-wide described clouds, or (cache_clouds=0) private dicts that stay empty."""
+        if self.cache_clouds:
+            self._states, self._described = _MEMORY.states, _MEMORY.described
+        else:
+            self._states, self._described = OrderedDict(), OrderedDict()
+
+    def _describer_key(self, model) -> tuple:
+        """What besides the cloud, axis, scale and seed decides a described row: shared between instances,
+        the memory must tell apart describers that one instance alone never mixes."""
+        return (type(self).__name__, str(model.desc_path), str(model.ref_path), str(self.execution_providers))
 
     def model_path(self, which: str) -> Path:
         """The Desc model file for "3dmatch", "kitti" or a path, at `precision` (int8: the shipped int8 file,
@@ -750,7 +784,7 @@ class BufferDescriptor(FeatureDescriptor):
             raise InputError(f"BUFFER model {model.desc_path} has no Ref model; use axis=pca or none")
         pts = np.asarray(points, dtype=np.float64) / scale
         kp = np.asarray(keypoints, dtype=np.float64) / scale
-        cloud_key = (str(model.desc_path), how, float(scale), self.seed, _digest(pts))
+        cloud_key = (*self._describer_key(model), how, float(scale), self.seed, _digest(pts))
         state, prep = self._state(model, how, pts, cloud_key)
         key = (cloud_key, _digest(kp))
         entry = self._described.get(key)
@@ -892,6 +926,7 @@ class _Bound(FeatureDescriptor):
 
 __all__ = [
     "BufferDescriptor",
+    "forget_described_clouds",
     "BufferParams",
     "align_rotations",
     "cut_patches",

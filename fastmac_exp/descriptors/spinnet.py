@@ -341,6 +341,9 @@ class SpinNetDescriptor(BufferDescriptor):
 
     # -- description (BufferDescriptor.describe keeps the per-cloud caches)
 
+    def _describer_key(self, model) -> tuple:
+        return (*super()._describer_key(model), self.downsample)
+
     def _state(self, model, how: str, pts: np.ndarray, key: tuple):
         state = self._states.get(key)
         if state is not None:
