@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -244,3 +245,42 @@ def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_it
     )
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
     assert len(read_rows(log)) == 8
+
+
+def test_ending_workers_survives_a_result_cut_off_mid_message(tmp_path):
+    """A worker SIGTERMed while sending its result leaves part of a message in the result pipe: ending the
+    workers must not wait forever for the rest (it did, under load, about one interrupt in 40)."""
+    script = tmp_path / "cut_off.py"
+    script.write_text(
+        textwrap.dedent(
+            """
+            import struct, time
+            from concurrent.futures import ProcessPoolExecutor
+            from fastmac_exp.run.experiment import _end_workers
+
+            def slow(x):
+                time.sleep(120)
+                return x
+
+            if __name__ == "__main__":
+                pool = ProcessPoolExecutor(max_workers=2)
+                futures = [pool.submit(slow, i) for i in range(2)]
+                time.sleep(1.0)
+                # what the cut-off send leaves: a header promising 100 bytes, and 10 of them
+                pool._result_queue._writer._send(struct.pack("!i", 100) + b"x" * 10)
+                time.sleep(0.5)  # the executor's thread reads the header and waits for the rest
+                _end_workers(pool)
+                print("ended", all(f.done() for f in futures))
+            """
+        )
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        out = proc.communicate(timeout=60)[0]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("ending the workers hung on a result cut off mid-message") from None
+    assert proc.returncode == 0 and "ended True" in out, out[-2000:]

@@ -147,9 +147,22 @@ def _die_with_parent() -> None:
 
 def _end_workers(pool: ProcessPoolExecutor) -> None:
     """Stop the workers now (an interrupt or an error): running pairs are abandoned, not waited for."""
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # terminate_workers() in 3.14
+    procs = list((getattr(pool, "_processes", None) or {}).values())  # terminate_workers() in 3.14
+    for proc in procs:
         proc.terminate()
-    pool.shutdown(wait=True, cancel_futures=True)
+    for proc in procs:
+        proc.join(10)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+    # A worker ended half way through sending its result leaves part of a message in the result pipe, and
+    # the executor's manager thread would wait for the rest forever (shutdown, and the interpreter's exit,
+    # join it). With every worker gone, closing this process's own write end turns that wait into an EOF,
+    # which the executor takes for a broken pool.
+    writer = getattr(getattr(pool, "_result_queue", None), "_writer", None)
+    if writer is not None:
+        writer.close()
+    pool.shutdown(wait=True)  # the executor's thread finds the workers gone and fails what is left
 
 
 def _work(args: tuple[int, str]) -> PairOutcome:
@@ -272,8 +285,12 @@ def _run_locked(
             cfg_yaml = OmegaConf.to_yaml(cfg, resolve=True)
             pool = ProcessPoolExecutor(max_workers=workers, initializer=_init_worker, initargs=(cfg_yaml,))
             try:
-                for out in pool.map(_work, todo):
-                    consume(out)
+                # submitted one by one, not through pool.map: on an interrupt map cancels the futures still
+                # queued, and the executor (3.11) then fails setting BrokenProcessPool on them once the
+                # workers are ended, with a traceback from its thread
+                futures = [pool.submit(_work, item) for item in todo]
+                for future in futures:
+                    consume(future.result())
             except BaseException:
                 _end_workers(pool)
                 raise
