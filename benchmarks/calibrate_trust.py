@@ -1,21 +1,26 @@
-"""Calibrate `result.trusted` (geometry/trust.py) on the real pairs of ../shared/data and on unrelated
-pairs made of them (each pair's target with the source of the next pair of the same category).
+"""Calibrate `result.trusted` (geometry/trust.py) out of sample: choose on one half of the pairs, report on
+the other.
 
-For every pair it runs the experiment's flow (FPFH, the given sampler and ratio, the C++ MAC) and prints
-the evidence (correspondences explained by the pose, the clique, chance's count lambda, the confidence)
-next to the GT verdict; then the false-accept count (an unrelated pair, or a real pair whose pose fails
-GT, that is trusted) and the false-reject count (a real pair registered by GT, not trusted).
+The pairs are every real pair ../shared/data can make (benchmarks/trust_pairs.py: the given 13, their
+reversals, every other pair of one scene's scans with GT, unrelated pairs of other places) and the synthetic
+families' pairs, split in two halves by a fixed hash of the scans they are made of. Each pair runs FPFH
+(and FPFH with mutual matching) under FastMAC@20, samples=auto and MAC on every correspondence (C++),
+seeds 0..S-1, with the decoy on, so every row holds all the evidence (count k, clique, chance lambda, the
+best distinct rival's count and chance, the decoy's excess). The test is then replayed offline from
+that evidence: the rival margin is chosen on the calibration half (no false accept there, then the fewest
+false rejects) and false accepts / rejects are reported per inlier-ratio band on the held-out half, for
+the previous test (the 1 % structure allowance), the rival alone, the decoy alone and both.
 
-    PYTHONPATH=. python benchmarks/calibrate_trust.py [--data ../shared/data] [--sampler highpass]
-        [--ratio 0.2] [--json out.json]
+    PYTHONPATH=. python benchmarks/calibrate_trust.py [--data ../shared/data] [--seeds 2] [--synthetic 8]
+        [--json evidence.json] [--replay evidence.json]
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,84 +28,150 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.trust_pairs import all_cases  # noqa: E402
 from fastmac_exp.backends.cpp import CppBackend  # noqa: E402
-from fastmac_exp.datasets.user_pairs import SharedRealPairs  # noqa: E402
 from fastmac_exp.descriptors.fpfh import FPFHDescriptor  # noqa: E402
-from fastmac_exp.options import compose_run, instantiate_part  # noqa: E402
+from fastmac_exp.geometry.trust import RIVAL_MARGIN, STRUCTURE_RATE, TRUST_LEVEL, decide  # noqa: E402
 from fastmac_exp.pipeline import run_pair  # noqa: E402
+from fastmac_exp.samplers import GraphFilterSampler, NoSampler  # noqa: E402
+
+CONFIGS = {  # name: (sampler, ratio, samples)
+    "fastmac20": (GraphFilterSampler, 0.2, None),
+    "auto": (GraphFilterSampler, 0.2, "auto"),
+    "mac": (NoSampler, 1.0, None),
+}
+BANDS = ("< 1 %", "1-3 %", "> 3 %")
+MARGINS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
+TESTS = ("previous", "rival", "decoy", "rival+decoy")
 
 
-def scene(entry: dict) -> str:
-    """The place a pair was scanned: pairs of one place are not unrelated (several redkitchen fragments,
-    KITTI 00 frames)."""
-    text = f"{entry['id']} {entry['dataset']}".lower()
-    for place in ("redkitchen", "kitti", "home_at", "bunny", "dragon", "apollo"):
-        if place in text:
-            return place
-    return entry["source"].split("/")[0]
+def band(ratio) -> str:
+    r = 0.0 if ratio is None or not np.isfinite(ratio) else float(ratio)
+    return BANDS[0] if r < 0.01 else BANDS[1] if r <= 0.03 else BANDS[2]
 
 
-def pairs(data: str):
-    ds = SharedRealPairs(root=data)
-    loaded = [ds.load(i) for i in range(len(ds))]
-    entries = ds._index()
-    for p in loaded:
-        yield "real", p
-    # unrelated: each pair's target with the source of every pair of the same category from another place
-    for i, p in enumerate(loaded):
-        for j, src in enumerate(loaded):
-            if entries[j]["category"] != entries[i]["category"] or scene(entries[j]) == scene(entries[i]):
-                continue
-            yield (
-                "unrelated",
-                dataclasses.replace(
-                    p,
-                    name=f"{src.name}(src)+{p.name}(tgt)",
-                    src_cloud=src.src_cloud,
-                    gt=None,
-                    correspondences=None,
-                ),
-            )
+def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
+    rows = []
+    cases = all_cases(data, synthetic)
+    print(f"{len(cases)} pairs: " + ", ".join(f"{k} {sum(c.kind == k for c in cases)}"
+                                            for k in ("given", "same_scene", "unrelated", "synthetic")))  # fmt: skip
+    for ci, case in enumerate(cases):
+        for desc_name, desc in (("fpfh", FPFHDescriptor()), ("fpfh_mutual", FPFHDescriptor(mutual=True))):
+            pair = case.pair
+            corr = desc(pair, np.random.default_rng(0))
+            if pair.gt is not None:
+                pair.label(corr)
+            fixed = type(pair)(**{**pair.__dict__, "correspondences": corr})
+            for cfg, (smp, ratio, samples) in CONFIGS.items():
+                for seed in range(seeds):
+                    t0 = time.perf_counter()
+                    try:
+                        out = run_pair(fixed, desc, smp(), CppBackend(), ratio, np.random.default_rng(seed),
+                                       samples=samples, decoy="on")  # fmt: skip
+                    except Exception as exc:  # a pair the search fails outright: no pose to trust
+                        rows.append({"pair": case.name, "kind": case.kind, "half": case.half,
+                                     "descriptor": desc_name, "config": cfg, "seed": seed, "error": str(exc)})  # fmt: skip
+                        continue
+                    r, res = out.row, out.result
+                    rows.append({
+                        "pair": case.name, "kind": case.kind, "group": case.group, "half": case.half,
+                        "descriptor": desc_name, "config": cfg, "seed": seed, "n": r["n_in"],
+                        "inlier_ratio": r.get("inlier_ratio_in"), "k": r["pose_inliers"],
+                        "clique": r["clique_size"], "lam": res.chance_inliers, "rival_k": res.rival_inliers,
+                        "rival_lam": res.rival_chance, "decoy": res.decoy_inliers,
+                        "success": r.get("success"), "re_deg": r.get("re_deg"), "te_cm": r.get("te_cm"),
+                        "ms": (time.perf_counter() - t0) * 1e3, "t_decoy_ms": res.timings.get("decoy"),
+                        "t_total_ms": res.timings.get("total"), "t_trust_ms": res.timings.get("trust"),
+                    })  # fmt: skip
+        last = rows[-1]
+        print(f"[{ci + 1}/{len(cases)}] {case.kind:10s} {case.name[:60]:60s} {last.get('half', '')[:5]} "
+              f"ratio {last.get('inlier_ratio') or 0:.3f} ok {last.get('success')}", flush=True)  # fmt: skip
+    return rows
+
+
+def verdict(row: dict, test: str, margin: float) -> bool:
+    """The test replayed from a row's evidence. previous: the 1 % allowance and the pose's own clique;
+    rival: the rival instead of the allowance; decoy: the decoy's count instead of the clique;
+    rival+decoy: as register() runs it (decoy=auto): the rival with the clique, and where that does
+    not trust the pose, the rival with the decoy's count."""
+    rival = row["rival_k"] - row["rival_lam"]
+    if test == "previous":  # the test before issue 48: Poisson(max(c, 3) + lambda + 1 % of N)
+        from scipy.special import gammainc
+
+        mean = max(row["clique"], 3) + row["lam"] + STRUCTURE_RATE * row["n"]
+        return 1.0 - float(gammainc(max(int(row["k"]), 1), mean)) >= TRUST_LEVEL
+    if test == "rival":
+        return decide(row["k"], row["clique"], row["lam"], row["n"], rival, None, margin)[0] >= TRUST_LEVEL
+    if test == "decoy":
+        return decide(row["k"], row["clique"], row["lam"], row["n"], None, row["decoy"])[0] >= TRUST_LEVEL
+    return verdict(row, "rival", margin) or (
+        decide(row["k"], row["clique"], row["lam"], row["n"], rival, row["decoy"], margin)[0] >= TRUST_LEVEL
+    )
+
+
+def counts(rows: list[dict], test: str, margin: float) -> dict:
+    out = {b: {"pairs": 0, "right": 0, "fa": 0, "fr": 0} for b in BANDS}
+    for r in rows:
+        if "error" in r:
+            continue
+        b = out[band(r["inlier_ratio"])]
+        b["pairs"] += 1
+        ok = bool(r["success"])
+        b["right"] += ok
+        t = verdict(r, test, margin)
+        b["fa"] += t and not ok
+        b["fr"] += ok and not t
+    return out
+
+
+def table(rows: list[dict], title: str, margin: float) -> None:
+    print(f"\n{title} ({len(rows)} runs; false accepts / false rejects of the right poses, per band)")
+    print(f"| test | {' | '.join(f'{b}: runs, right, FA, FR' for b in BANDS)} |")
+    print("|---|" + "---|" * len(BANDS))
+    for test in TESTS:
+        c = counts(rows, test, margin)
+        cells = " | ".join(f"{c[b]['pairs']}, {c[b]['right']}, **{c[b]['fa']}**, {c[b]['fr']}" for b in BANDS)
+        print(f"| {test} | {cells} |")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
-    ap.add_argument("--sampler", default="highpass")
-    ap.add_argument("--ratio", type=float, default=0.2)
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--synthetic", type=int, default=8)
+    ap.add_argument("--json", default=None, help="write the evidence rows here")
+    ap.add_argument("--replay", default=None, help="read evidence rows instead of running the pairs")
     args = ap.parse_args()
-    if not (Path(args.data) / "pairs.json").is_file():
-        sys.exit(f"calibrate_trust: {args.data}/pairs.json not found (pass --data)")
-    sampler = instantiate_part(compose_run({"sampler": args.sampler}).sampler)
-    rows = []
-    print(
-        f"{'kind':9s} {'pair':62s} {'N':>5s} {'inl':>5s} {'clq':>4s} {'lambda':>7s} {'conf':>8s} trusted GT"
-    )
-    for kind, pair in pairs(args.data):
-        out = run_pair(pair, FPFHDescriptor(), sampler, CppBackend(), args.ratio, np.random.default_rng(0))
-        r = out.row
-        lam = out.result.chance_inliers if out.result is not None else None
-        ok = r.get("success")
-        rows.append({"kind": kind, "pair": pair.name, "n_in": r.get("n_in"), "inliers": r.get("pose_inliers"),
-                     "clique": r.get("clique_size"), "lambda": lam, "confidence": r.get("confidence"),
-                     "trusted": r.get("trusted"), "success": ok, "error": r.get("error", "")})  # fmt: skip
-        print(f"{kind:9s} {pair.name[:62]:62s} {r.get('n_in', 0):5d} {r.get('pose_inliers', 0):5d} "
-              f"{r.get('clique_size', 0):4d} {lam if lam is not None else float('nan'):7.2f} "
-              f"{r.get('confidence', 0.0):8.6f} {str(r.get('trusted')):7s} {ok}", flush=True)  # fmt: skip
-    real = [r for r in rows if r["kind"] == "real"]
-    unrelated = [r for r in rows if r["kind"] == "unrelated"]
-    fa_unrel = sum(bool(r["trusted"]) for r in unrelated)
-    fa_wrong = sum(bool(r["trusted"]) and not r["success"] for r in real)
-    fr = sum(bool(r["success"]) and not r["trusted"] for r in real)
-    print(f"real pairs: {len(real)} ({sum(bool(r['success']) for r in real)} registered by GT); "
-          f"unrelated pairs: {len(unrelated)}")  # fmt: skip
-    print(
-        f"false accepts: {fa_unrel} of {len(unrelated)} unrelated, {fa_wrong} real pair(s) with a wrong pose"
-    )
-    print(f"false rejects: {fr} of the registered real pairs")
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=1, default=str))
+    if args.replay:
+        rows = json.loads(Path(args.replay).read_text())
+    else:
+        if not (Path(args.data) / "pairs.json").is_file():
+            sys.exit(f"calibrate_trust: {args.data}/pairs.json not found (pass --data)")
+        rows = gather(args.data, args.seeds, args.synthetic)
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
+    cal = [r for r in rows if r["half"] == "calibration"]
+    held = [r for r in rows if r["half"] == "held_out"]
+    print(f"\ncalibration half: {len({r['pair'] for r in cal})} pairs, held-out half: "
+          f"{len({r['pair'] for r in held})} pairs")  # fmt: skip
+    print("\nthe rival margin on the calibration half (rival+decoy): margin, false accepts, false rejects")
+    best = None
+    for m in MARGINS:
+        c = counts(cal, "rival+decoy", m)
+        fa, fr = sum(v["fa"] for v in c.values()), sum(v["fr"] for v in c.values())
+        print(f"  {m:5.2f}  FA {fa:3d}  FR {fr:3d}")
+        if best is None or (fa, fr) < best[1:]:
+            best = (m, fa, fr)
+    print(f"chosen on the calibration half: margin {best[0]} (geometry/trust.py has RIVAL_MARGIN = {RIVAL_MARGIN})")
+    table(cal, "calibration half (in sample)", RIVAL_MARGIN)
+    table(held, "held-out half (out of sample)", RIVAL_MARGIN)
+    wrong = [r for r in held if "error" not in r and not r["success"] and verdict(r, "rival+decoy", RIVAL_MARGIN)]
+    for r in wrong:
+        print(f"  held-out false accept: {r['pair']} {r['descriptor']} {r['config']} seed {r['seed']}: k {r['k']} "
+              f"clique {r['clique']} lam {r['lam']:.1f} rival {r['rival_k']} decoy {r['decoy']:.1f}")  # fmt: skip
+    cost = [r["t_decoy_ms"] / max(r["t_total_ms"], 1e-9) for r in rows if r.get("t_decoy_ms")]
+    if cost:
+        print(f"\ndecoy cost / sampling+MAC: median {np.median(cost):.2f}, max {np.max(cost):.2f}")
 
 
 if __name__ == "__main__":

@@ -145,7 +145,20 @@ class RegistrationResult:
     trusted: bool = False
     confidence: float = 0.0
     chance_inliers: float = float("nan")  # ... the evidence: what chance explains under this pose
+    # MAC's hypotheses (one per selected clique, in order) and their MAE scores on the correspondences
+    # it was given: the trust check's rivals (None from backends that keep no hypotheses)
+    hypothesis_poses: np.ndarray | None = None
+    hypothesis_scores: np.ndarray | None = None
+    # the trust check's evidence beyond chance (geometry.trust.Trust): the decoy run's and the best
+    # distinct rival's counts (NaN where not measured)
+    decoy_inliers: float = float("nan")
+    rival_inliers: float = float("nan")
+    rival_chance: float = float("nan")
     error: str = ""  # register(): why no pose could be found ("" = a pose); then pose is all NaN
+    # register()'s escalation (fastmac_exp.escalation): the step that gave this pose and every step tried
+    # (name, ms, trusted, confidence, error); "" and [] where it did not escalate
+    step: str = ""
+    escalation: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:

@@ -46,8 +46,10 @@ def test_library_register_flags_what_it_cannot_trust_instead_of_raising():
     failed. A pose of unrelated clouds maps about its clique's size within the inlier threshold, a right
     one far more: `inliers` says which."""
     corr, _ = make_correspondences(n=1000, inlier_ratio=0.0, seed=0)
-    res = register(corr, sampler="random", ratio=0.05)
+    res = register(corr, sampler="random", ratio=0.05, escalate="off")
     assert not res.ok and "no second-order edge" in res.error and np.isnan(res.pose).all()
+    wider = register(corr, sampler="random", ratio=0.05)  # the escalation finds a pose, and trusts none
+    assert not wider.trusted and wider.escalation[0]["error"] == res.error
     good, gt = make_correspondences(n=1000, inlier_ratio=0.1, seed=1)
     res = register(good, ratio=0.2)
     assert res.ok and res.inliers == 100 and np.allclose(res.pose, gt, atol=0.05)

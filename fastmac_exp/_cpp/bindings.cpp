@@ -266,7 +266,8 @@ nb::dict select_cliques(int64_t n, const Indices &i, const Indices &j, const Wei
 nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, double alpha, double tau,
              double threshold, double inlier_threshold, int min_clique_size, int refine_iters, bool reduction,
              const std::string &search, int64_t max_cliques, int64_t max_nodes, int64_t max_work,
-             double time_limit_s, int64_t enumerate_budget, int num_threads, bool return_selected) {
+             double time_limit_s, int64_t enumerate_budget, int num_threads, bool return_selected,
+             bool return_hypotheses) {
     const int64_t n = check_pair(src, tgt);
     fastmac::MacParams p;
     p.graph = graph_params(kernel, alpha, tau, threshold);
@@ -281,6 +282,7 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     p.time_limit_s = time_limit_s;
     p.enumerate_budget = enumerate_budget;
     p.return_selected = return_selected;
+    p.return_hypotheses = return_hypotheses;
     if (min_clique_size < 3) throw std::invalid_argument("min_clique_size must be at least 3");
     fastmac::MacResult r;
     {
@@ -309,6 +311,22 @@ nb::dict mac(const Points &src, const Points &tgt, const std::string &kernel, do
     t["pose"] = r.t_pose;
     d["timings"] = t;
     if (return_selected) d["selected"] = clique_list(r.selected);
+    if (return_hypotheses) {
+        const int64_t nh = (int64_t)r.hyp_poses.size();
+        std::vector<double> poses(nh * 16);
+        for (int64_t h = 0; h < nh; ++h) {
+            const fastmac::Pose &T = r.hyp_poses[h];
+            double *m = poses.data() + 16 * h;
+            for (int i = 0; i < 3; ++i) {
+                for (int j = 0; j < 3; ++j) m[4 * i + j] = T.R[3 * i + j];
+                m[4 * i + 3] = T.t[i];
+            }
+            m[12] = m[13] = m[14] = 0.0;
+            m[15] = 1.0;
+        }
+        d["hypothesis_poses"] = to_numpy(std::move(poses), {(size_t)nh, 4, 4});
+        d["hypothesis_scores"] = to_numpy(std::move(r.hyp_scores));
+    }
     return d;
 }
 
@@ -634,7 +652,9 @@ NB_MODULE(_mac_core, m) {
           "min_clique_size"_a = 3, "refine_iters"_a = 20, "reduction"_a = true, "search"_a = "auto",
           "max_cliques"_a = 0, "max_nodes"_a = 0, "max_work"_a = 0, "time_limit_s"_a = 0.0,
           "enumerate_budget"_a = fastmac::kEnumerateBudget, "num_threads"_a = 0, "return_selected"_a = false,
-          "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order.");
+          "return_hypotheses"_a = false,
+          "MAC end to end (spec 2-5). return_selected adds 'selected': the hypotheses' cliques in order; "
+          "return_hypotheses adds 'hypothesis_poses' (H, 4, 4) and 'hypothesis_scores' (H,), in the same order.");
     m.def("select_cliques", &select_cliques, "n"_a, "i"_a, "j"_a, "w"_a, "min_size"_a = 3, "search"_a = "auto",
           "max_cliques"_a = 0, "max_nodes"_a = 0, "max_work"_a = 0, "time_limit_s"_a = 0.0,
           "enumerate_budget"_a = fastmac::kEnumerateBudget, "num_threads"_a = 0,

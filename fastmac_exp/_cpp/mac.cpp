@@ -341,6 +341,10 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
     // thread a strict > keeps the earliest of equal scores. Reduced the same way: deterministic.
     std::vector<double> t_score(nthreads, 0.0);
     std::vector<int64_t> t_h(nthreads, -1);
+    if (p.return_hypotheses) {
+        res.hyp_poses.resize(nh);
+        res.hyp_scores.resize(nh);
+    }
     DynamicRange hyps(0, nh, 16);
     parallel_region(nthreads, [&](int tid) {
         std::vector<int32_t> scratch;
@@ -348,6 +352,10 @@ MacResult mac(const double *src, const double *tgt, int64_t n, const MacParams &
         while (hyps.next(lo, hi)) for (int64_t h = lo; h < hi; ++h) {
             const Pose T = kabsch(src, tgt, selected.begin(h), (int64_t)selected.len(h), nullptr);
             const double s = scorer.score(T, scratch);
+            if (p.return_hypotheses) {
+                res.hyp_poses[h] = T;
+                res.hyp_scores[h] = s;
+            }
             if (s > t_score[tid]) {
                 t_score[tid] = s;
                 t_h[tid] = h;

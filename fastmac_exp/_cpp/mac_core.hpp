@@ -343,6 +343,7 @@ struct MacParams {
     int64_t enumerate_budget = kEnumerateBudget;  // Auto: CliqueCaps::enumerate_work_per_node
     double time_limit_s = 0.0;
     bool return_selected = false;  // copy the selected cliques (hypotheses, in order) into the result
+    bool return_hypotheses = false;  // keep every hypothesis' pose and score (the trust check's rivals)
 };
 
 struct MacResult {
@@ -357,6 +358,9 @@ struct MacResult {
     int64_t search_work = 0;     // the branch and bound's work units (0 when it did not run)
     std::string cap_hit;
     CliqueList selected;  // only with MacParams::return_selected
+    // only with MacParams::return_hypotheses: each selected clique's pose and its MAE score, in order
+    std::vector<Pose> hyp_poses;
+    std::vector<double> hyp_scores;
     // Wall-clock milliseconds. graph: W and G. cliques: clustering/reduction, the clique graph and the
     // search, which also computes each clique's weight and updates the per-node choice (streamed
     // selection). selection: merging the per-thread choices and deduplicating. pose: hypotheses,

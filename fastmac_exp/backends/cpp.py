@@ -84,6 +84,7 @@ class CppBackend:
             time_limit_s=float(params.time_limit_s),
             enumerate_budget=int(params.enumerate_budget),
             num_threads=self.num_threads,
+            return_hypotheses=True,
         )
         search = str(params.search)
         if search == "auto":
@@ -102,4 +103,6 @@ class CppBackend:
             search=search,
             search_nodes=int(r["search_nodes"]),
             timings=dict(r["timings"]),
+            hypothesis_poses=r["hypothesis_poses"],
+            hypothesis_scores=r["hypothesis_scores"],
         )

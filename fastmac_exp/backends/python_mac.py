@@ -210,10 +210,13 @@ class PythonBackend:
 
         t0 = time.perf_counter()
         best_score, best_pose, best_i = 0.0, None, -1
+        hyp_poses = np.empty((len(selected), 4, 4))
+        hyp_scores = np.empty(len(selected))
         for i, c in enumerate(selected):
             idx = np.asarray(c)
             pose = kabsch(src[idx], tgt[idx])
             s, _ = mae_score(pose, src, tgt, params.inlier_threshold)
+            hyp_poses[i], hyp_scores[i] = pose, s
             if s > best_score:
                 best_score, best_pose, best_i = s, pose, i
         if best_pose is None:
@@ -233,4 +236,6 @@ class PythonBackend:
             reduced=reduced,
             cap_hit=cap_hit,
             timings=timings,
+            hypothesis_poses=hyp_poses,
+            hypothesis_scores=hyp_scores,
         )

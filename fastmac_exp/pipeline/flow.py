@@ -19,7 +19,8 @@ from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
 from fastmac_exp.geometry.metrics import pose_errors
 from fastmac_exp.geometry.offset import common_offset, moved_pair, pair_offset, result_to_original, translate
-from fastmac_exp.geometry.trust import assess
+from fastmac_exp.families import family as family_record
+from fastmac_exp.geometry.trust import ChanceCounter, assess, explained, rival_support
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.pipeline.row import PairRow
@@ -55,6 +56,7 @@ def run_pair(
     cache: CorrespondenceCache | None = None,
     cache_key: str | None = None,
     samples: int | str | None = None,
+    decoy: str = "auto",
 ) -> PairOutcome:
     """Describe, sample, register and evaluate one pair; exceptions propagate to the caller.
 
@@ -91,7 +93,8 @@ def run_pair(
         inlier_ratio_in=corr.inlier_ratio,
     )
     result, sample = register_correspondences(
-        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples
+        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples,
+        decoy=decoy, distinct=(pair.re_thresh_deg, pair.te_thresh_m),
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
@@ -109,6 +112,9 @@ def run_pair(
         pose_inliers=result.inliers,
         trusted=result.trusted,
         confidence=result.confidence,
+        chance_inliers=result.chance_inliers,
+        rival_inliers=result.rival_inliers,
+        decoy_excess=result.decoy_inliers,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -150,8 +156,7 @@ def sampler_engine(sampler: Sampler, sample: SampleResult) -> str:
 
 def pose_inliers(corr: Correspondences, pose: np.ndarray, threshold: float) -> int:
     """How many correspondences the pose maps to within `threshold` of their target point."""
-    residual = np.linalg.norm(corr.src @ pose[:3, :3].T + pose[:3, 3] - corr.tgt, axis=1)
-    return int((residual < threshold).sum())
+    return explained(corr.src, corr.tgt, pose, threshold)
 
 
 def describe(
@@ -178,6 +183,9 @@ def describe(
     return corr, describe_ms, False
 
 
+DECOY_CHOICES = ("auto", "on", "off")
+
+
 def register_correspondences(
     corr: Correspondences,
     params: MacParams,
@@ -188,35 +196,93 @@ def register_correspondences(
     rng: np.random.Generator | None = None,
     sample_graph: GraphParams | None = None,
     samples: int | str | None = None,
+    decoy: str = "auto",
+    distinct: tuple[float, float] | None = None,
 ) -> tuple[RegistrationResult, SampleResult]:
     """Sample, then run MAC on the kept correspondences. Indices in the result refer to `corr`.
 
     sample_graph: the sampler's compatibility graph, when it differs from MAC's (FastMAC's graph fixes the
     resolution at 0.006 where MAC computes it from the clouds); None = MAC's. samples: keep min(samples, N)
     instead of floor(N * ratio); "auto" (or ratio="auto"): the keep sized from the scores.
+    decoy: the trust check's decoy run (the same sampler and backend on the correspondences with their
+    targets permuted; geometry.trust): "on", "off", or "auto" (only where the pose is not trusted with
+    its own clique standing in for what the search finds by chance: a tight clique of most inliers). distinct: (degrees, metres) beyond which a hypothesis is a rival of the chosen
+    pose (None: the family's success thresholds).
     """
+    if decoy not in DECOY_CHOICES:
+        raise InputError(f"decoy must be one of {DECOY_CHOICES}, got {decoy!r}")
     rng = rng if rng is not None else np.random.default_rng(0)
     corr.validate()
     offset = common_offset(corr.src, corr.tgt)  # georeferenced correspondences of a library caller
     work = translate(corr, -offset) if offset.any() else corr
+    (decoy_rng,) = rng.spawn(1)  # the decoy's draws leave the sampler's untouched
     t0 = time.perf_counter()
     sample = sampler.sample(work, ratio, sample_graph or params.graph, family, rng, samples=samples)
     kept = sample.indices
     result = backend.register(work.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
-    result.inliers = pose_inliers(work, result.pose, params.inlier_threshold)
-    verdict = assess(
-        work.src, work.tgt, result.pose, params.inlier_threshold, result.inliers, len(result.clique)
-    )
+    t1 = time.perf_counter()
+    tau = params.inlier_threshold
+    result.inliers = pose_inliers(work, result.pose, tau)
+    chance = ChanceCounter(work.src, work.tgt, tau)
+    fam = family_record(family)
+    re_deg, te_m = distinct if distinct is not None else (fam.re_thresh_deg, fam.te_thresh_m)
+    rival = rival_support(result.hypothesis_poses, result.hypothesis_scores, result.pose, work.src, work.tgt,
+                          tau, re_deg, te_m, chance)  # fmt: skip
+    decoy_ms = 0.0
+    excess = None
+    verdict = None
+    if decoy != "on":  # first with the pose's own clique for the search's pick
+        verdict = assess(work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique),
+                         rival=rival, chance=chance)  # fmt: skip
+    if decoy == "on" or (decoy == "auto" and not verdict.trusted):
+        t2 = time.perf_counter()
+        excess = decoy_count(work, params, sampler, backend, ratio, family, decoy_rng, sample_graph,
+                             samples, chance)  # fmt: skip
+        decoy_ms = (time.perf_counter() - t2) * 1e3
+        verdict = assess(work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique),
+                         rival=rival, decoy_count=excess, chance=chance)  # fmt: skip
     result.trusted, result.confidence = verdict.trusted, verdict.confidence
     result.chance_inliers = verdict.chance_inliers
+    result.rival_inliers, result.rival_chance = verdict.rival_inliers, verdict.rival_chance
+    result.decoy_inliers = float("nan") if excess is None else excess
+    trust_ms = (time.perf_counter() - t1) * 1e3 - decoy_ms
     result_to_original(result, offset)
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores
-    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "total": total}
+    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "total": total,
+                      "trust": trust_ms, **({"decoy": decoy_ms} if excess is not None else {})}  # fmt: skip
     return result, sample
+
+
+def decoy_count(
+    corr: Correspondences,
+    params: MacParams,
+    sampler: Sampler,
+    backend: Backend,
+    ratio: float,
+    family: str,
+    rng: np.random.Generator,
+    sample_graph: GraphParams | None,
+    samples: int | str | None,
+    chance: ChanceCounter,
+) -> float:
+    """What the same search explains beyond chance when the matches carry no information: sampler and
+    backend on the correspondences with their targets permuted (the same two point sets, so chance under
+    any pose is the same), its clique included. 0 where the decoy finds no pose at all."""
+    perm = rng.permutation(len(corr))
+    fake = Correspondences(src=corr.src, tgt=corr.tgt[perm])
+    try:
+        sample = sampler.sample(fake, ratio, sample_graph or params.graph, family, rng, samples=samples)
+        res = backend.register(fake.subset(sample.indices), params)
+    except RegistrationFailed:
+        return 0.0
+    if not np.isfinite(res.pose).all():
+        return 0.0
+    k = explained(fake.src, fake.tgt, res.pose, params.inlier_threshold)
+    return float(k - chance(res.pose))
 
 
 class Verdict(NamedTuple):

@@ -1,0 +1,114 @@
+"""register()'s escalation (issue 48 items 3-4): the loop's rules on stand-in attempts, then the facade on
+correspondences and clouds whose first try is not trusted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fastmac_exp import register
+from fastmac_exp.errors import InputError
+from fastmac_exp.escalation import STEPS, Step, available_steps, escalate
+from fastmac_exp.geometry.transforms import random_rotation
+from fastmac_exp.types import Correspondences, RegistrationResult
+
+
+def _result(trusted: bool, confidence: float, error: str = "") -> RegistrationResult:
+    eye = np.eye(4)
+    return RegistrationResult(pose=eye, pose_unrefined=eye, kept=np.zeros(0, int), clique=np.zeros(0, int),
+                              trusted=trusted, confidence=confidence, error=error)  # fmt: skip
+
+
+def test_the_loop_stops_at_the_first_trusted_step_and_says_what_each_cost():
+    seen = []
+    verdicts = {"a": (False, 0.5), "b": (True, 0.999), "c": (True, 1.0)}
+
+    def attempt(step):
+        seen.append(step.name)
+        return _result(*verdicts[step.name])
+
+    res = escalate(attempt, [Step("a"), Step("b"), Step("c")])
+    assert seen == ["a", "b"] and res.step == "b" and res.trusted
+    assert [s["step"] for s in res.escalation] == ["a", "b"]
+    assert all(s["ms"] >= 0 for s in res.escalation) and "escalation" in res.timings
+
+
+def test_no_trusted_step_returns_the_most_confident_pose_untrusted():
+    verdicts = {"a": (False, 0.5), "b": (False, 0.9), "c": (False, 0.0)}
+    res = escalate(lambda s: _result(*verdicts[s.name]), [Step("a"), Step("b"), Step("c")])
+    assert res.step == "b" and not res.trusted and len(res.escalation) == 3
+    # a failed step (no pose) never beats a pose
+    res = escalate(lambda s: _result(False, 0.0, "no clique") if s.name == "b" else _result(False, 0.0),
+                   [Step("a"), Step("b")])  # fmt: skip
+    assert res.step == "a"
+
+
+def test_the_budget_stops_new_steps_and_says_so():
+    res = escalate(lambda s: _result(False, 0.1), [Step("a"), Step("b")], budget_s=0.0)
+    assert res.step == "a"
+    assert res.escalation[1]["step"] == "b" and "budget" in res.escalation[1]["error"]
+
+
+def test_the_steps_are_ordered_by_cost_and_the_describing_ones_need_clouds():
+    names = [s.name for s in STEPS]
+    assert names[:3] == ["first", "samples_auto", "mac_all"] and names[-1] == "learned"
+    corr_steps = [s.name for s in available_steps(clouds=False, fpfh=True)]
+    assert corr_steps == ["first", "samples_auto", "mac_all"]
+    other = [s.name for s in available_steps(clouds=True, fpfh=False)]
+    assert "mutual" not in other and "finer_voxel" not in other and "mac_fixed_resolution" in other
+
+
+def _scarce(n: int = 3000, inliers: int = 45, seed: int = 0):
+    """Correspondences with 1.5 % inliers under a known pose."""
+    rng = np.random.default_rng(seed)
+    gt = np.eye(4)
+    gt[:3, :3], gt[:3, 3] = random_rotation(rng), [0.4, -0.2, 0.3]
+    src = rng.uniform(0, 3, (n, 3))
+    tgt = rng.uniform(0, 3, (n, 3))
+    tgt[:inliers] = src[:inliers] @ gt[:3, :3].T + gt[:3, 3] + rng.normal(0, 0.01, (inliers, 3))
+    return Correspondences(src, tgt), gt
+
+
+def test_register_escalates_from_a_sampler_that_misses_the_inliers_to_mac_on_every_match():
+    """random@1 % keeps ~0.5 of the 45 inliers: no trusted pose; samples=auto is refused for the random
+    sampler (recorded, not raised); MAC on every correspondence finds the pose and trusts it."""
+    corr, gt = _scarce()
+    first = register(corr, sampler="random", ratio=0.01, escalate="off")
+    assert not first.trusted
+    res = register(corr, sampler="random", ratio=0.01)
+    assert res.trusted and res.step == "mac_all"
+    steps = [s["step"] for s in res.escalation]
+    assert steps == ["first", "samples_auto", "mac_all"]
+    assert res.escalation[1]["error"]  # random has no samples=auto
+    assert np.abs(res.pose - gt).max() < 0.05
+
+
+def test_a_trusted_first_try_does_not_escalate():
+    corr, gt = _scarce(n=1000, inliers=200)
+    res = register(corr)
+    assert res.trusted and res.step == "first" and len(res.escalation) == 1
+
+
+def test_bad_escalation_arguments_are_refused():
+    corr, _ = _scarce(n=200, inliers=50)
+    with pytest.raises(InputError, match="escalate must be one of"):
+        register(corr, escalate="always")
+    with pytest.raises(InputError, match="budget_s"):
+        register(corr, budget_s=-1)
+    with pytest.raises(InputError, match="unknown option"):  # the user's own mistake is raised, not escalated
+        register(corr, sampler_ratio=0.3)
+
+
+def test_the_default_descriptors_options_need_no_name_and_clouds_escalate_past_their_graph():
+    """register(src, tgt, mutual=True): FPFH's option without descriptor="fpfh" (it was refused)."""
+    from tests.test_cli import _blob_pair
+
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        s, t, gt = _blob_pair(Path(d))
+        src, tgt = np.load(s), np.load(t)
+    res = register(src, tgt, mutual=True, escalate="off")
+    assert res.ok and res.trusted
+    assert np.abs(res.pose - gt).max() < 0.1
