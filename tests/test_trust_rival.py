@@ -41,21 +41,22 @@ def test_distinct_is_rotation_beyond_the_angle_or_a_shift_of_the_centre_beyond_t
     assert distinct(poses, np.eye(4), centre, 15.0, 0.1).tolist() == [True, True, True, False]
 
 
-def test_decide_is_the_poisson_tail_of_chance_plus_the_larger_of_the_search_and_the_structure_parts():
+def test_decide_is_the_poisson_tail_of_chance_plus_the_largest_wrong_pose_part():
     from scipy.stats import poisson
 
-    # nothing measured: the pose's own clique for the search, the 1 % allowance for structure
+    # nothing measured: the pose's own clique for the search's pick, or structure at any pose
     conf, mean = decide(40, 5, 2.0, 1000)
     assert mean == pytest.approx(2.0 + max(5, STRUCTURE_RATE * 1000))
     assert conf == pytest.approx(1 - poisson.sf(39, mean))
-    # the decoy's count replaces the clique, the rival's excess times the margin the allowance
-    conf, mean = decide(40, 30, 1.0, 1000, rival_excess=6.0, decoy_count=4.0, margin=2.0)
-    assert mean == pytest.approx(1.0 + 12.0)
-    assert conf == pytest.approx(1 - poisson.sf(39, mean))
-    _, mean = decide(40, 30, 1.0, 1000, rival_excess=-3.0, decoy_count=2.0)
+    assert decide(40, 30, 2.0, 1000)[1] == pytest.approx(2.0 + 30)
+    # the decoy's count replaces the clique; the rival's excess, times the margin, is the third part
+    conf, mean = decide(60, 30, 1.0, 400, rival_excess=20.0, decoy_count=4.0, margin=1.5, rate=0.01)
+    assert mean == pytest.approx(1.0 + 30.0)
+    assert conf == pytest.approx(1 - poisson.sf(59, mean))
+    _, mean = decide(40, 30, 1.0, 100, rival_excess=-3.0, decoy_count=2.0, rate=0.01)
     assert mean == pytest.approx(1.0 + 3.0)  # a rival below chance allows nothing; a pose needs 3
-    _, mean = decide(40, 30, 1.0, 1000, rival_excess=0.0, decoy_count=float("nan"))
-    assert mean == pytest.approx(1.0 + 30)  # NaN: the decoy did not run
+    _, mean = decide(40, 30, 1.0, 100, rival_excess=float("nan"), decoy_count=float("nan"), rate=0.01)
+    assert mean == pytest.approx(1.0 + 30)  # NaN: not measured
     assert decide(0, 3, 0.0, 10)[0] == 0.0
 
 
@@ -80,7 +81,9 @@ def test_rival_support_counts_what_the_rival_explains_beyond_the_chosen_pose():
     poses = np.stack([a, near_a, b])
     k, lam = rival_support(poses, np.array([60.0, 50.0, 25.0]), a, src, tgt, 0.1, 15.0, 0.3, chance)
     assert k == explained(src[60:], tgt[60:], b, 0.1) and 25 <= k <= 27  # B's own, perhaps a chance one
-    assert lam == pytest.approx(chance(b))
+    mine = np.linalg.norm(src @ a[:3, :3].T + a[:3, 3] - tgt, axis=1) < 0.1
+    assert lam == pytest.approx(chance(b, sources=src[~mine]))  # chance among the matches A leaves
+    assert chance(b, sources=src) == pytest.approx(chance(b))  # all sources: lambda itself
     # no distinct hypothesis: no rival (0); no hypotheses kept: not measured (NaN)
     assert rival_support(np.stack([a]), np.array([60.0]), a, src, tgt, 0.1, 15.0, 0.3, chance) == (0.0, 0.0)
     assert np.isnan(rival_support(None, None, a, src, tgt, 0.1, 15.0, 0.3, chance)[0])

@@ -1,22 +1,21 @@
 """Whether a pose can be trusted, without ground truth (docs/trust.md).
 
-A pose T explains k correspondences (|T s_i - t_i| < tau). The test asks whether k is more than the
-pose would explain if it were wrong, with three wrong-pose explanations, each measured on the pair itself:
+A pose T explains k correspondences (|T s_i - t_i| < tau). It is trusted when k is well beyond what a
+wrong pose would explain on the same pair, each part measured on the pair itself:
 
 - chance: a random matching of the same points puts lambda = (1/N) sum_i #{j : |T s_i - t_j| < tau}
   correspondences within tau under T (large for dense clouds and large thresholds: object scans);
-- the search's own pick: the pose was fitted on its clique (c), and a search that keeps the best of many
-  poses finds more than lambda even when the matches carry no information: the decoy (the same sampler
-  and MAC on the correspondences with their targets permuted) measures that excess on these clouds;
-- structure: within one scene a wrong pose can line up walls and floors. The best *distinct* hypothesis
-  the search itself scored (rotation or translation, at the source's centre, beyond the family's success
-  thresholds from the chosen pose) is the rival; a pose that does not clearly beat its rival's excess over
-  chance is ambiguous, whatever its count.
+- the search's pick: a search that keeps the best of many poses finds a consistent set even when the
+  matches carry no information. The pose's own clique bounds it; where that bound leaves the pose
+  untrusted (a tight clique of most of the inliers, a small set), the decoy measures it instead: the same
+  sampler and MAC on the correspondences with their targets permuted;
+- structure: FPFH matches planes to planes, so a wrong pose lines up walls and floors: STRUCTURE_RATE of N
+  at any pose, and, where the search saw a distinct pose (rotation or translation at the source's centre
+  beyond the family's success thresholds), what the best such rival explains that T does not, beyond
+  chance (RIVAL_MARGIN times it): the ambiguity of a scene with two explanations.
 
-The null count is Poisson with mean max(c, 3) + lambda + max(decoy excess, RIVAL_MARGIN x the rival's
-excess); confidence = 1 - P(X >= k) and trusted = confidence >= TRUST_LEVEL. Where neither the decoy nor
-a rival was measured (a backend that keeps no hypotheses, the decoy off), the structure allowance
-STRUCTURE_RATE x N of the previous test stands in for both.
+The null count is Poisson with mean lambda + the largest of the three; confidence = 1 - P(X >= k), and
+trusted = confidence >= TRUST_LEVEL.
 """
 
 from __future__ import annotations
@@ -27,13 +26,12 @@ import numpy as np
 
 # confidence a pose needs to be trusted: a false-accept chance of 1 % under the null
 TRUST_LEVEL = 0.99
-# how much more than its best distinct rival's excess over chance a trusted pose must explain; chosen on
-# the calibration half of benchmarks/calibrate_trust.py's pairs and reported on the other half
-# (docs/trust.md)
-RIVAL_MARGIN = 2.0
-# the previous test's allowance for structure (1 % of N), used only where no rival and no decoy was
-# measured: out of sample it both accepted wrong poses and rejected right ones (docs/trust.md)
-STRUCTURE_RATE = 0.01
+# The two constants were chosen on the calibration half of benchmarks/calibrate_trust.py's pairs (no false
+# accept there, then the fewest false rejects, then the larger) and are reported on the held-out half
+# (docs/trust.md). What a wrong pose explains by structure at any pose, as a share of the correspondences:
+STRUCTURE_RATE = 0.0125
+# ... and how much of what its best distinct rival explains beyond it a wrong pose may explain too
+RIVAL_MARGIN = 1.0
 # the best-scored distinct hypotheses whose support beyond the chosen pose's is counted on every
 # correspondence (bounded work: RIVALS x N)
 RIVALS = 16
@@ -55,7 +53,7 @@ class ChanceCounter:
     most CHANCE_SAMPLE targets, its counts scaled back to all N)."""
 
     def __init__(self, src: np.ndarray, tgt: np.ndarray, threshold: float) -> None:
-        n = len(src)
+        n = self.n = len(src)
         self.threshold = float(threshold)
         self.sources = src[:: max(1, n // CHANCE_SAMPLE)] if n else src
         t_step = max(1, n // CHANCE_SAMPLE)
@@ -64,12 +62,19 @@ class ChanceCounter:
 
         self.tree = cKDTree(tgt[::t_step]) if n else None
 
-    def __call__(self, pose: np.ndarray) -> float:
+    def __call__(self, pose: np.ndarray, sources: np.ndarray | None = None) -> float:
+        """lambda under `pose`; with `sources` (a subset of the set's), the part of it those contribute."""
         if self.tree is None:
             return 0.0
-        moved = self.sources @ pose[:3, :3].T + pose[:3, 3]
+        if sources is None:
+            picked, share = self.sources, 1.0
+        else:
+            if not len(sources):
+                return 0.0
+            picked, share = sources[:: max(1, len(sources) // CHANCE_SAMPLE)], len(sources) / self.n
+        moved = picked @ pose[:3, :3].T + pose[:3, 3]
         near = self.tree.query_ball_point(moved, self.threshold, return_length=True)
-        return float(np.mean(near)) * self.scale
+        return float(np.mean(near)) * self.scale * share
 
 
 def chance_inliers(src: np.ndarray, tgt: np.ndarray, pose: np.ndarray, threshold: float) -> float:
@@ -123,7 +128,7 @@ def rival_support(
     others = src[~mine], tgt[~mine]
     counts = [explained(*others, poses[h], threshold) for h in top]
     best = top[int(np.argmax(counts))]
-    return float(max(counts)), chance(poses[best])
+    return float(max(counts)), chance(poses[best], sources=others[0])
 
 
 def decide(
@@ -134,20 +139,20 @@ def decide(
     rival_excess: float | None = None,
     decoy_count: float | None = None,
     margin: float | None = None,
+    rate: float | None = None,
 ) -> tuple[float, float]:
     """(confidence, null mean) of a pose explaining `inliers` of n, fitted on `clique`, with chance count
-    `lam`. decoy_count: what the decoy's pose explained beyond chance (None or NaN: not run; the pose's own
-    clique stands in, a bound that is high where the clique holds most of the inliers); rival_excess: what
-    the best rival explains beyond the pose and chance (None or NaN: the backend kept no hypotheses; the
-    previous 1 % allowance stands in)."""
+    `lam`: the mean is lam + the largest of what a wrong pose explains beyond chance by the search's pick
+    (decoy_count, what the decoy's pose explained beyond chance; None or NaN: not run, and the pose's own
+    clique stands in), by structure at any pose (rate x n) and by the best rival's structure
+    (margin x rival_excess, what it explains beyond the pose and chance; None or NaN: not measured)."""
     margin = RIVAL_MARGIN if margin is None else margin
+    rate = STRUCTURE_RATE if rate is None else rate
     measured = decoy_count is not None and np.isfinite(decoy_count)
-    search = max(float(decoy_count), 3.0) if measured else float(max(int(clique), 3))
+    parts = [max(float(decoy_count), 3.0) if measured else float(max(int(clique), 3)), rate * n]
     if rival_excess is not None and np.isfinite(rival_excess):
-        structure = margin * max(float(rival_excess), 0.0)
-    else:
-        structure = STRUCTURE_RATE * n
-    mean = lam + max(search, structure)
+        parts.append(margin * max(float(rival_excess), 0.0))
+    mean = lam + max(parts)
     if inliers <= 0:
         return 0.0, mean
     from scipy.special import gammainc  # not scipy.stats: 0.4 s less on a process's first call

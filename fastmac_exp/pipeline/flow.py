@@ -215,7 +215,6 @@ def register_correspondences(
     corr.validate()
     offset = common_offset(corr.src, corr.tgt)  # georeferenced correspondences of a library caller
     work = translate(corr, -offset) if offset.any() else corr
-    (decoy_rng,) = rng.spawn(1)  # the decoy's draws leave the sampler's untouched
     t0 = time.perf_counter()
     sample = sampler.sample(work, ratio, sample_graph or params.graph, family, rng, samples=samples)
     kept = sample.indices
@@ -237,6 +236,8 @@ def register_correspondences(
         verdict = assess(work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique),
                          rival=rival, chance=chance)  # fmt: skip
     if decoy == "on" or (decoy == "auto" and not verdict.trusted):
+        # spawned only now: the sampler's draws (and its own spawns) are those of a run without the decoy
+        (decoy_rng,) = rng.spawn(1)
         t2 = time.perf_counter()
         excess = decoy_count(work, params, sampler, backend, ratio, family, decoy_rng, sample_graph,
                              samples, chance)  # fmt: skip

@@ -39,6 +39,10 @@ def check_run_keys(cfg: DictConfig) -> None:
     workers = cfg.get("workers", 1)
     if not _is_int(workers) or workers < 1:
         raise InputError(f"workers must be a whole number >= 1, got {workers!r} (config key: workers)")
+    run_escalates(cfg)  # auto or off
+    budget = cfg.get("escalate_budget_s", 30)
+    if isinstance(budget, bool) or not isinstance(budget, int | float) or not budget >= 0:
+        raise InputError(f"escalate_budget_s must be a number of seconds >= 0, got {budget!r}")
     check_devices(cfg)
     graph = OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None
     mac = OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None
@@ -55,6 +59,16 @@ def run_samples(cfg: DictConfig) -> int | str | None:
     if is_auto(samples) or (samples is None and is_auto(cfg.get("ratio"))):
         return "auto"
     return None if samples is None else int(samples)
+
+
+def run_escalates(cfg: DictConfig) -> bool:
+    """escalate=auto (a pose that is not trusted tries the wider steps) or off (YAML may read off as false)."""
+    value = cfg.get("escalate", "off")
+    if value is False or value is None or str(value) == "off":
+        return False
+    if str(value) == "auto":
+        return True
+    raise InputError(f"escalate must be auto or off, got {value!r} (config key: escalate)")
 
 
 def run_ratio(cfg: DictConfig) -> float:

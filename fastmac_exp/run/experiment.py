@@ -25,8 +25,10 @@ from fastmac_exp.geometry.trust import TRUST_LEVEL
 from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.pipeline.row import PairRow
+from fastmac_exp.types import Pair
 from fastmac_exp.resources import find_file
-from fastmac_exp.run.checks import check_run_keys, run_ratio, run_samples
+from fastmac_exp.run.checks import check_run_keys, run_escalates, run_ratio, run_samples
+from fastmac_exp.run.escalate_pair import StepParts, escalate_pair
 from fastmac_exp.run.results import ResultsLog, pose_file, pose_matrix, write_pose
 from fastmac_exp.run.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.run.runlock import RunLock
@@ -46,6 +48,7 @@ class Components:
         self.sampler = instantiate(cfg.sampler)
         self.backend = instantiate(cfg.backend)
         self.cfg = cfg
+        self.step_parts: StepParts | None = None  # escalate=auto's parts, built on first use
         cache_cfg = cfg.get("cache") or {}
         self.cache = CorrespondenceCache(cache_cfg.get("dir"), bool(cache_cfg.get("correspondences", False)))
         desc_plain = OmegaConf.to_container(cfg.descriptor, resolve=True)
@@ -100,21 +103,28 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
     try:
         pair = comp.dataset.load(index)
         row.set(scene=pair.scene, family=pair.family)
-        outcome = run_pair(
-            pair,
-            comp.descriptor,
-            comp.sampler,
-            comp.backend,
-            run_ratio(cfg),
-            pair_rng(cfg.seed, index),
-            protocol=str(cfg.protocol),
-            graph_overrides=OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None,
-            mac_overrides=OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None,
-            row=row,
-            cache=comp.cache,
-            cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
-            samples=run_samples(cfg),
-        )
+        rng_seed = (cfg.seed, index)
+
+        def run_step(p: Pair, descriptor: Any, sampler: Any, samples: Any, alike: bool, r: PairRow) -> PairOutcome:
+            return run_pair(
+                p,
+                descriptor,
+                sampler,
+                comp.backend,
+                run_ratio(cfg),
+                pair_rng(*rng_seed),
+                protocol=str(cfg.protocol),
+                graph_overrides=OmegaConf.to_container(cfg.graph) if cfg.get("graph") else None,
+                mac_overrides=OmegaConf.to_container(cfg.mac) if cfg.get("mac") else None,
+                row=r,
+                cache=comp.cache if alike else None,
+                cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
+                samples=samples,
+            )
+
+        outcome = run_step(pair, comp.descriptor, comp.sampler, run_samples(cfg), True, row)
+        if run_escalates(cfg):
+            outcome = escalate_run_pair(comp, outcome, pair, run_step, row)
         return outcome
     except Exception as exc:  # noqa: BLE001 - one bad pair must never stop the run
         if cfg.get("fail_fast", False):
@@ -122,6 +132,27 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
         row.set(error=f"{type(exc).__name__}: {exc}", success=False)
         log.debug("pair %s failed:\n%s", name, traceback.format_exc())
         return PairOutcome(row=row.to_dict())
+
+
+def escalate_run_pair(comp: Components, first: PairOutcome, pair: Pair, run_step: Any, row: PairRow) -> PairOutcome:
+    """escalate=auto: a pose that is not trusted runs the wider steps (run/escalate_pair.py); a step that
+    fails is recorded as a failed step, never as the pair's failure."""
+    if first.row.get("trusted"):
+        first.row["escalation_step"] = "first"
+        return first
+
+    def step(p: Pair, descriptor: Any, sampler: Any, samples: Any, alike: bool) -> PairOutcome:
+        r = dataclasses.replace(row, descriptor=str(getattr(descriptor, "name", row.descriptor)),
+                                sampler=str(getattr(sampler, "name", row.sampler)), timings={})  # fmt: skip
+        try:
+            return run_step(p, descriptor, sampler, samples, alike, r)
+        except Exception as exc:  # noqa: BLE001 - a wider step's failure is not the pair's
+            r.set(error=f"{type(exc).__name__}: {exc}", success=False)
+            return PairOutcome(row=r.to_dict())
+
+    if comp.step_parts is None:
+        comp.step_parts = StepParts(comp.cfg, comp.descriptor, comp.sampler)
+    return escalate_pair(first, pair, comp.step_parts, step, float(comp.cfg.get("escalate_budget_s", 30.0)))
 
 
 _WORKER: Components | None = None
