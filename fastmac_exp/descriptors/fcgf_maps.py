@@ -49,15 +49,6 @@ class KernelMap:
     def transposed(self) -> KernelMap:
         return KernelMap(self.out_rows, self.in_rows, self.bounds, self.n_out, self.n_in)
 
-    def table(self) -> np.ndarray:
-        """(n_out, K) int64: the input row of each output and offset, n_in where there is none (a map in
-        which an output has at most one input per offset: stride 1 or 2, not transposed)."""
-        t = np.full((self.n_out, self.volume), self.n_in, dtype=np.int64)
-        for k in range(self.volume):
-            s, e = self.bounds[k], self.bounds[k + 1]
-            t[self.out_rows[s:e], k] = self.in_rows[s:e]
-        return t
-
 
 def kernel_offsets(kernel_size: int) -> np.ndarray:
     """(k^3, 3) int64 offsets in units of the input's tensor stride, x fastest (ME's order)."""
@@ -70,34 +61,59 @@ def kernel_offsets(kernel_size: int) -> np.ndarray:
 
 class CoordTable:
     """Row lookup of the coordinates of one level (multiples of `stride`): a dense grid over the bounding
-    box when it has at most `dense_cells` cells, else binary search over the sorted keys (the same rows)."""
+    box grown by `margin` cells a side when that has at most `dense_cells` cells (then a neighbour of a
+    stored coordinate within the margin is one addition to its grid index), else binary search over the
+    sorted keys; both give the same rows."""
 
-    def __init__(self, coords: np.ndarray, stride: int, dense_cells: int = DENSE_CELLS) -> None:
+    def __init__(
+        self, coords: np.ndarray, stride: int, margin: int = 0, dense_cells: int = DENSE_CELLS
+    ) -> None:
         c = np.asarray(coords, dtype=np.int64) // stride
-        self.stride = stride
-        self.lo = c.min(axis=0)
-        self.dims = c.max(axis=0) - self.lo + 1
-        keys = self._keys(c - self.lo)
+        self.stride, self.margin = stride, margin
+        self.lo = c.min(axis=0) - margin
+        self.dims = c.max(axis=0) + margin - self.lo + 1
+        self.keys = self._keys(c - self.lo)
         self.dense = int(np.prod(self.dims)) <= dense_cells
         if self.dense:
-            self.grid = np.full(int(np.prod(self.dims)), -1, dtype=np.int64)
-            self.grid[keys] = np.arange(len(c))
+            self.grid = np.full(int(np.prod(self.dims)), -1, dtype=np.int32)
+            self.grid[self.keys] = np.arange(len(c), dtype=np.int32)
         else:
-            order = np.argsort(keys, kind="stable")
-            self.sorted_keys, self.rows = keys[order], order
+            order = np.argsort(self.keys, kind="stable")
+            self.sorted_keys, self.rows = self.keys[order], order
 
     def _keys(self, rel: np.ndarray) -> np.ndarray:
-        return (rel[:, 2] * self.dims[1] + rel[:, 1]) * self.dims[0] + rel[:, 0]
+        return (rel[..., 2] * self.dims[1] + rel[..., 1]) * self.dims[0] + rel[..., 0]
 
     def find(self, coords: np.ndarray) -> np.ndarray:
         """The row of each coordinate (multiples of the stride), -1 where the level has none."""
         rel = np.asarray(coords, dtype=np.int64) // self.stride - self.lo
-        inside = np.all((rel >= 0) & (rel < self.dims), axis=1)
-        keys = self._keys(np.where(inside[:, None], rel, 0))
+        inside = np.all((rel >= 0) & (rel < self.dims), axis=-1)
+        keys = self._keys(np.where(inside[..., None], rel, 0))
         if self.dense:
-            return np.where(inside, self.grid[keys], -1)
+            return np.where(inside, self.grid[keys], -1).astype(np.int64)
         pos = np.minimum(np.searchsorted(self.sorted_keys, keys), len(self.sorted_keys) - 1)
         return np.where(inside & (self.sorted_keys[pos] == keys), self.rows[pos], -1)
+
+    def neighbours(self, centres: np.ndarray, offsets: np.ndarray, chunk: int = 1 << 22) -> np.ndarray:
+        """(M, K) int64: the row at centre + offset (offsets in units of the stride) for each centre (a
+        multiple of the stride) and offset, -1 where there is none."""
+        centres = np.asarray(centres, dtype=np.int64)
+        out = np.empty((len(centres), len(offsets)), dtype=np.int64)
+        reach = int(np.abs(offsets).max()) if len(offsets) else 0
+        rel = centres // self.stride - self.lo
+        fast = (
+            self.dense and reach <= self.margin and bool(np.all((rel >= reach) & (rel < self.dims - reach)))
+        )
+        step = max(1, chunk // max(1, len(offsets)))
+        if fast:  # every neighbour lies in the grid: a grid index plus the offset's
+            delta = self._keys(offsets) - self._keys(np.zeros(3, dtype=np.int64))
+            base = self._keys(rel)
+            for i in range(0, len(centres), step):
+                out[i : i + step] = self.grid[base[i : i + step, None] + delta[None, :]]
+            return out
+        for i in range(0, len(centres), step):
+            out[i : i + step] = self.find(centres[i : i + step, None, :] + offsets[None] * self.stride)
+        return out
 
 
 def voxelize(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -115,6 +131,32 @@ def downsample(coords: np.ndarray, out_stride: int) -> np.ndarray:
     return np.unique(np.floor_divide(coords, out_stride) * out_stride, axis=0)
 
 
+def pairs_from_table(table: np.ndarray, n_in: int) -> KernelMap:
+    """The KernelMap of a (n_out, K) table of input rows (-1 or n_in: none), pairs grouped by offset."""
+    t = np.asarray(table).T
+    hit = (t >= 0) & (t < n_in)
+    counts = hit.sum(axis=1)
+    bounds = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return KernelMap(
+        t[hit].astype(np.int64), np.nonzero(hit)[1].astype(np.int64), bounds, n_in, table.shape[0]
+    )
+
+
+def kernel_table(
+    in_coords: np.ndarray,
+    out_coords: np.ndarray,
+    kernel_size: int,
+    in_stride: int,
+    in_table: CoordTable | None = None,
+) -> np.ndarray:
+    """(n_out, k^3) int64: for each output u and offset d (units of in_stride, ME's order) the input row at
+    u + d, n_in where there is none (conv1's table, an index into the inputs with a zero row appended)."""
+    table = in_table or CoordTable(in_coords, in_stride, margin=kernel_size // 2)
+    rows = table.neighbours(out_coords, kernel_offsets(kernel_size))
+    rows[rows < 0] = len(in_coords)
+    return rows
+
+
 def kernel_map(
     in_coords: np.ndarray,
     out_coords: np.ndarray,
@@ -124,23 +166,8 @@ def kernel_map(
 ) -> KernelMap:
     """The pairs of a convolution with `kernel_size` from `in_coords` (tensor stride `in_stride`) onto
     `out_coords`: for each offset d (units of in_stride, ME's order) and output u, the input at u + d."""
-    table = in_table or CoordTable(in_coords, in_stride)
-    offsets = kernel_offsets(kernel_size) * in_stride
-    ins, outs, bounds = [], [], [0]
-    out_rows = np.arange(len(out_coords), dtype=np.int64)
-    for d in offsets:
-        rows = table.find(out_coords + d)
-        hit = rows >= 0
-        ins.append(rows[hit])
-        outs.append(out_rows[hit])
-        bounds.append(bounds[-1] + int(hit.sum()))
-    return KernelMap(
-        np.concatenate(ins),
-        np.concatenate(outs),
-        np.asarray(bounds, dtype=np.int64),
-        len(in_coords),
-        len(out_coords),
-    )
+    t = kernel_table(in_coords, out_coords, kernel_size, in_stride, in_table)
+    return pairs_from_table(t, len(in_coords))
 
 
 @dataclass(frozen=True)
@@ -151,9 +178,13 @@ class UNetMaps:
     transposed convolutions take them swapped)."""
 
     coords: tuple[np.ndarray, ...]
-    conv1: KernelMap
+    conv1_table: np.ndarray
     same: tuple[KernelMap, ...]
     down: tuple[KernelMap, ...]
+
+    @property
+    def conv1(self) -> KernelMap:
+        return pairs_from_table(self.conv1_table, len(self.coords[0]))
 
     @property
     def sizes(self) -> tuple[int, ...]:
@@ -168,10 +199,11 @@ def unet_maps(coords: np.ndarray, conv1_kernel_size: int, levels: int = 4) -> UN
     levels_c = [coords]
     for lv in range(1, levels):
         levels_c.append(downsample(levels_c[-1], 1 << lv))
-    tables = [CoordTable(c, 1 << lv) for lv, c in enumerate(levels_c)]
+    margins = [max(1, conv1_kernel_size // 2)] + [1] * (levels - 1)
+    tables = [CoordTable(c, 1 << lv, margins[lv]) for lv, c in enumerate(levels_c)]
     same = tuple(kernel_map(c, c, 3, 1 << lv, tables[lv]) for lv, c in enumerate(levels_c))
     down = tuple(
         kernel_map(levels_c[lv], levels_c[lv + 1], 3, 1 << lv, tables[lv]) for lv in range(levels - 1)
     )
-    conv1 = same[0] if conv1_kernel_size == 3 else kernel_map(coords, coords, conv1_kernel_size, 1, tables[0])
+    conv1 = kernel_table(coords, coords, conv1_kernel_size, 1, tables[0])
     return UNetMaps(tuple(levels_c), conv1, same, down)

@@ -15,13 +15,11 @@ def sparse_conv(x: torch.Tensor, kernel: torch.Tensor, kmap: KernelMap) -> torch
     """out[o] = sum over offsets k and pairs (i, o) of k: x[i] @ kernel[k]; kernel (K, in, out)."""
     if kernel.shape[0] != kmap.volume:
         raise ValueError(f"kernel of {kernel.shape[0]} offsets for a map of {kmap.volume}")
+    gathered = x.index_select(0, torch.from_numpy(kmap.in_rows))
+    b = kmap.bounds.tolist()
+    products = torch.cat([gathered[b[k] : b[k + 1]] @ kernel[k] for k in range(kmap.volume)])
     out = x.new_zeros((kmap.n_out, kernel.shape[2]))
-    ins, outs = torch.from_numpy(kmap.in_rows), torch.from_numpy(kmap.out_rows)
-    for k in range(kmap.volume):
-        s, e = int(kmap.bounds[k]), int(kmap.bounds[k + 1])
-        if e > s:
-            out.index_add_(0, outs[s:e], x[ins[s:e]] @ kernel[k])
-    return out
+    return out.index_add_(0, torch.from_numpy(kmap.out_rows), products)
 
 
 class TorchOps:
@@ -41,11 +39,9 @@ class TorchOps:
         y = x @ self.p[f"{key}.kernel"].reshape(x.shape[1], out)
         return y + self.p[f"{key}.bias"].reshape(1, out) if bias else y
 
-    def bn(self, key, x):
+    def bn(self, key, x):  # eval mode, spelled out so that it is differentiable in every statistic
         g = lambda n: self.p[f"{key}.bn.{n}"]  # noqa: E731
-        return torch.nn.functional.batch_norm(
-            x, g("running_mean"), g("running_var"), g("weight"), g("bias"), training=False, eps=BN_EPS
-        )
+        return (x - g("running_mean")) / torch.sqrt(g("running_var") + BN_EPS) * g("weight") + g("bias")
 
     def relu(self, x):
         return torch.relu(x)
