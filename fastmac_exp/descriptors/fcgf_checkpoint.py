@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -141,17 +142,12 @@ class Checkpoint:
         )
 
 
-class _EasyDict(dict):
-    """What an easydict.EasyDict unpickles to here: its items (the attribute copy is dropped)."""
-
-    def __setstate__(self, state) -> None:
-        pass
-
-
 def _safe_globals() -> list:
     core = getattr(np, "_core", None) or np.core
     return [
-        (_EasyDict, "easydict.EasyDict"),
+        # an EasyDict unpickles as an OrderedDict: the one mapping type whose items and attributes the
+        # weights-only unpickler both sets (its attribute copy of the items is dropped with the object)
+        (OrderedDict, "easydict.EasyDict"),
         (core.multiarray.scalar, "numpy.core.multiarray.scalar"),
         (core.multiarray.scalar, "numpy._core.multiarray.scalar"),
         np.dtype,
@@ -211,7 +207,7 @@ def checked_state(state: dict, cfg: NetConfig, path) -> dict[str, np.ndarray]:
         allowed = {shape}
         if key.endswith(".kernel") and len(shape) == 2:
             allowed.add((1, *shape))
-        if key.endswith(".bias"):
+        if key == "final.bias":
             allowed.add((shape[1],))
         if arr.shape not in allowed:
             problems.append(f"{key} {tuple(arr.shape)} (expected {shape})")
