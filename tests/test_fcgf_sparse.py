@@ -15,6 +15,7 @@ from fastmac_exp.descriptors.fcgf_maps import (
     kernel_offsets,
     kernel_table,
     unet_maps,
+    unique_rows,
     voxelize,
 )
 from fastmac_exp.descriptors.fcgf_plan import BN_EPS, NetConfig, expected_shapes, resunet
@@ -72,6 +73,15 @@ def test_strided_coordinates_floor_negative_coordinates():
     c = np.array([[-1, 0, 3], [-2, 1, 2], [1, 1, 1], [0, 0, 0]])
     assert downsample(c, 2).tolist() == [[-2, 0, 2], [0, 0, 0]]
     assert downsample(np.array([[-3, 5, -4]]), 4).tolist() == [[-4, 4, -4]]
+
+
+def test_unique_rows_packed_and_generic_agree():
+    rng = np.random.default_rng(7)
+    for span in (5, 1 << 20, 1 << 40):  # the last one does not pack into an int64
+        c = rng.integers(-span, span, (3000, 3))
+        c = np.concatenate([c, c[:500]])[rng.permutation(3500)]
+        _, want = np.unique(c, axis=0, return_index=True)
+        assert np.array_equal(unique_rows(c), want)
 
 
 def test_voxelize_keeps_the_first_point_of_each_voxel():

@@ -17,7 +17,7 @@ The rules (ME's src/kernel_region.hpp, coordinate_map_cpu.hpp, coordinate_map_ma
   its kernel map is the stride-2 convolution's with inputs and outputs swapped (ME's `is_transpose`).
 
 A `KernelMap` lists the (input row, output row) pairs of each offset; the convolution is then a
-gather-GEMM-scatter per offset. Row order of a level is np.unique's (sorted coordinates): convolutions are
+gather-GEMM-scatter per offset. Row order of a level is lexicographic (sorted coordinates): convolutions are
 equivariant to it, so the features of a point do not depend on it.
 """
 
@@ -118,17 +118,30 @@ class CoordTable:
 
 def voxelize(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """(coordinates (M, 3) int64 = floor(xyz / voxel), the row of the first point of each voxel (M,)),
-    the voxels in np.unique's order (FCGF: ME.utils.sparse_quantize(..., return_index=True) keeps each
+    the voxels in lexicographic order (FCGF: ME.utils.sparse_quantize(..., return_index=True) keeps each
     voxel's first point too)."""
     c = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)
-    _, first = np.unique(c, axis=0, return_index=True)
+    first = unique_rows(c)
     return c[first], first
+
+
+def unique_rows(c: np.ndarray) -> np.ndarray:
+    """The row of the first occurrence of each distinct row of integer coordinates (N, 3), the distinct rows
+    in lexicographic order (z, y, x keys packed into one int64 where they fit: np.unique's order)."""
+    lo = c.min(axis=0)
+    dims = c.max(axis=0) - lo + 1
+    if len(c) == 0 or float(np.prod(dims.astype(np.float64))) >= 2.0**62:
+        return np.unique(c, axis=0, return_index=True)[1]
+    rel = c - lo
+    keys = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+    return np.unique(keys, return_index=True)[1]
 
 
 def downsample(coords: np.ndarray, out_stride: int) -> np.ndarray:
     """The coordinates at tensor stride `out_stride` of coordinates at a finer stride: floor(c / s) * s,
-    unique, in np.unique's order (ME's `stride_coordinate` with floor division)."""
-    return np.unique(np.floor_divide(coords, out_stride) * out_stride, axis=0)
+    unique, in lexicographic order (ME's `stride_coordinate` with floor division)."""
+    c = np.floor_divide(coords, out_stride) * out_stride
+    return c[unique_rows(c)]
 
 
 def pairs_from_table(table: np.ndarray, n_in: int) -> KernelMap:
