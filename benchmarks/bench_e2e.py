@@ -80,7 +80,10 @@ def learned_descriptor(name: str):
 
     if name == "fcgf" and not os.environ.get("FCGF_CHECKPOINT"):
         return RandomFcgf()
-    return instantiate(OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml"))
+    node = OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml")
+    if "cache_clouds" in node:  # BUFFER, SpinNet: each round describes again (else the rounds time a cache)
+        node.cache_clouds = 0
+    return instantiate(node)
 
 
 # the published checkpoints' shapes (FCGF's model zoo): 3DMatch conv1 7 at 2.5 cm, KITTI conv1 5 at 30 cm

@@ -22,6 +22,7 @@ from fastmac_exp.descriptors.fcgf_maps import unet_maps, voxelize
 from fastmac_exp.descriptors.fcgf_onnx import build_model, onnx_feeds
 from fastmac_exp.descriptors.fcgf_plan import NetConfig
 from fastmac_exp.descriptors.fcgf_torch import ResUNetBN2C
+from fastmac_exp.descriptors.matching import match_descriptors
 from fastmac_exp.errors import InputError, own_error
 from tests.test_fcgf_sparse import random_state
 
@@ -238,6 +239,21 @@ def test_descriptor_converts_once_into_the_data_home_and_describes(ckpt, tmp_pat
     monkeypatch.setenv("FCGF_CHECKPOINT", str(ckpt))
     again = FcgfDescriptor(sha256=sha)
     assert np.array_equal(again.features(pts, again.voxel_size)[1], f)
+
+
+def test_matching_only_the_capped_sources_gives_the_plain_path_s_correspondences(ckpt, tmp_path, monkeypatch):
+    from fastmac_exp.descriptors.matching import correspondences_from_features
+    from fastmac_exp.types import Pair
+
+    monkeypatch.setenv("FASTMAC_DATA", str(tmp_path / "home"))
+    d = FcgfDescriptor(checkpoint=str(ckpt), sha256=file_ids(ckpt).sha256, max_correspondences=300)
+    src = cloud(2)
+    pair = Pair(name="p", src_cloud=src, tgt_cloud=src + 0.01, voxel_size=0.05, family="3dmatch")
+    fast = d(pair, np.random.default_rng(5))
+    plain = correspondences_from_features(d, pair, np.random.default_rng(5), match_descriptors)
+    assert (
+        len(fast.src) == 300 and np.array_equal(fast.src, plain.src) and np.array_equal(fast.tgt, plain.tgt)
+    )
 
 
 def test_descriptor_refuses_an_unknown_checkpoint_and_a_missing_one(ckpt, tmp_path, monkeypatch):

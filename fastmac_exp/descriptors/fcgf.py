@@ -24,7 +24,7 @@ from fastmac_exp.descriptors.fcgf_maps import unet_maps, voxelize
 from fastmac_exp.descriptors.fcgf_onnx import onnx_feeds
 from fastmac_exp.descriptors.fcgf_plan import NetConfig
 from fastmac_exp.descriptors.keypoints import clean_points, require_keypoints
-from fastmac_exp.descriptors.matching import correspondences_from_features, match_descriptors
+from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
 from fastmac_exp.descriptors.onnx_descriptor import open_session
 from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
@@ -181,6 +181,15 @@ class FcgfDescriptor(FeatureDescriptor):
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
 
+    def keypoints(
+        self, points: np.ndarray, voxel: float, what: str = "cloud"
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(the cleaned cloud, its keypoints: the first point of each voxel)."""
+        pts = clean_points(points, what)
+        coords, first = voxelize(pts, voxel)
+        require_keypoints(coords, len(pts), voxel, what, "descriptor=fcgf")
+        return pts, pts[first]
+
     def features(
         self, points: np.ndarray, voxel: float, what: str = "cloud"
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -196,8 +205,15 @@ class FcgfDescriptor(FeatureDescriptor):
         norm = np.linalg.norm(y, axis=1, keepdims=True)
         return pts[first], (y / np.where(norm > 0, norm, 1.0)).astype(np.float32)
 
+    def features_of(
+        self, cloud: np.ndarray, kp: np.ndarray, rows: np.ndarray, what: str = "cloud"
+    ) -> np.ndarray:
+        """The features of keypoints `rows` (the network runs on the whole cloud: one pass describes all)."""
+        return self.features(cloud, self.voxel_size, what)[1][rows]
+
     def __call__(self, pair: Pair, rng: np.random.Generator) -> Correspondences:
-        return correspondences_from_features(self, pair, rng, match_descriptors)
+        # one-way matching: only the capped source keypoints are matched (a fragment has ~20k at 2.5 cm)
+        return correspondences_from_kept_sources(self, pair, rng, match_descriptors)
 
 
 __all__ = ["FcgfDescriptor", "cached_model_path", "convert", "data_home"]
