@@ -103,7 +103,7 @@ class FcgfDescriptor(FeatureDescriptor):
         voxel_size: float | None = None,
         max_correspondences: int = 5000,
         mutual: bool = False,
-        threads: int = 2,
+        threads: int = 1,
         execution_providers="auto",
         graph_key: str | None = None,
     ) -> None:
