@@ -1,7 +1,7 @@
 """Raw clouds to a pose, side by side in one run, on every real pair of ../shared/data (issue 40).
 
     python benchmarks/bench_e2e.py [--reps 3] [--ids ID ...] [--no-kiss] [--no-ransac] [--no-open3d]
-                                   [--no-startup] [--no-inliers] [--learned buffer fcgf_lite spinnet]
+                                   [--no-startup] [--no-inliers] [--learned buffer fcgf fcgf_lite spinnet]
                                    [--threads 0] [--json out.json]
 
 Methods, each from the two raw clouds (as loaded: no voxel grid applied before the clock starts):
@@ -12,8 +12,10 @@ Methods, each from the two raw clouds (as loaded: no voxel grid applied before t
 - project (Open3D FPFH): the same with descriptor.impl=open3d (Open3D's FPFH for every keypoint).
 - KISS-Matcher: its whole pipeline, KISSMatcher(KISSMatcherConfig(voxel)).estimate(src, tgt) (its own
   voxel grid, features, matching and solver); the clouds' conversion to its input lists is not timed.
-- project (buffer / fcgf_lite / spinnet), with --learned: the project with a learned front end
-  (its config's defaults) in place of FPFH.
+- project (buffer / fcgf / fcgf_lite / spinnet), with --learned: the project with a learned front end
+  (its config's defaults) in place of FPFH. fcgf takes $FCGF_CHECKPOINT; without it, random weights in the
+  published checkpoints' shapes (3DMatch: conv1 7 at 2.5 cm; KITTI: conv1 5 at 30 cm): the describe cost
+  holds, the poses are meaningless.
 - Open3D FPFH + RANSAC: Open3D's voxel grid, normals and FPFH (the project's parameters), then
   registration_ransac_based_on_feature_matching with 100,000 iterations (confidence 0.999).
 
@@ -71,11 +73,66 @@ LABELS = {
 
 
 def learned_descriptor(name: str):
-    """A learned front end by its config name, with the config's defaults (conf/descriptor/NAME.yaml)."""
+    """A learned front end by its config name, with the config's defaults (conf/descriptor/NAME.yaml);
+    fcgf without FCGF_CHECKPOINT: random checkpoint-shaped models (`RandomFcgf`)."""
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    return instantiate(OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml"))
+    if name == "fcgf" and not os.environ.get("FCGF_CHECKPOINT"):
+        return RandomFcgf()
+    node = OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml")
+    if "cache_clouds" in node:  # BUFFER, SpinNet: each round describes again (else the rounds time a cache)
+        node.cache_clouds = 0
+    return instantiate(node)
+
+
+# the published checkpoints' shapes (FCGF's model zoo): 3DMatch conv1 7 at 2.5 cm, KITTI conv1 5 at 30 cm
+FCGF_SHAPES = {"3dmatch": (7, 32, True, 0.025), "kitti": (5, 32, True, 0.3)}
+
+
+class RandomFcgf:
+    """descriptor=fcgf with random weights in the published checkpoints' shapes, one per family, written
+    as FCGF-format checkpoints (and converted) in a temporary data home: the describe cost of the real
+    network without its weights (the correspondences, and so the poses, are meaningless)."""
+
+    name, graph_key = "fcgf", "fcgf"
+
+    def __init__(self, seed: int = 0) -> None:
+        import torch
+
+        from fastmac_exp.descriptors.fcgf import FcgfDescriptor
+        from fastmac_exp.descriptors.fcgf_checkpoint import file_ids
+        from fastmac_exp.descriptors.fcgf_plan import NetConfig, expected_shapes
+
+        self._home = tempfile.TemporaryDirectory(prefix="fcgf_random_")
+        old = os.environ.get("FASTMAC_DATA")
+        os.environ["FASTMAC_DATA"] = self._home.name
+        g = torch.Generator().manual_seed(seed)
+        self.by_family = {}
+        try:
+            for family, (k1, out, norm, voxel) in FCGF_SHAPES.items():
+                cfg = NetConfig(1, k1, out, norm)
+                state = {}
+                for key, shape in expected_shapes(cfg).items():
+                    if key.endswith("num_batches_tracked"):
+                        state[key] = torch.tensor(0)
+                    elif key.endswith(("running_var", "bn.weight")):
+                        state[key] = 0.5 + torch.rand(shape, generator=g)
+                    else:
+                        state[key] = torch.randn(shape, generator=g) * 0.1
+                config = {"model": "ResUNetBN2C", "voxel_size": voxel, "conv1_kernel_size": k1,
+                          "model_n_out": out, "normalize_feature": norm}  # fmt: skip
+                path = Path(self._home.name) / f"random_{family}.pth"
+                torch.save({"state_dict": state, "config": config}, path)
+                self.by_family[family] = FcgfDescriptor(str(path), sha256=file_ids(path).sha256)
+        finally:
+            if old is None:
+                os.environ.pop("FASTMAC_DATA", None)
+            else:
+                os.environ["FASTMAC_DATA"] = old
+
+    def __call__(self, pair: Pair, rng):
+        return self.by_family["kitti" if pair.family == "kitti" else "3dmatch"](pair, rng)
 
 
 def project_once(
@@ -243,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         nargs="*",
         default=[],
         metavar="NAME",
-        help="also the project with these learned front ends (buffer, fcgf_lite, spinnet)",
+        help="also the project with these learned front ends (buffer, fcgf, fcgf_lite, spinnet)",
     )
     ap.add_argument("--threads", type=int, default=0, help="the core's threads (OMP_NUM_THREADS; 0: all)")
     ap.add_argument("--json", type=Path, default=None)

@@ -207,25 +207,6 @@ def test_config_instantiates():
     assert d.name == "fcgf_lite"
 
 
-def test_fcgf_is_a_documented_alias_of_fcgf_lite(caplog):
-    """descriptor=fcgf still runs (existing sweeps) but is fcgf_lite, says so, and labels rows fcgf_lite."""
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    from fastmac_exp.run.experiment import Components
-
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        alias = compose(config_name="config", overrides=["descriptor=fcgf"])
-        lite = compose(config_name="config", overrides=["descriptor=fcgf_lite"])
-    a, b = OmegaConf.to_container(alias.descriptor), OmegaConf.to_container(lite.descriptor)
-    assert a.pop("alias") == "fcgf" and a == b
-    with caplog.at_level("WARNING"):
-        parts = Components(alias)  # the experiment's own builder
-    assert parts.descriptor.name == "fcgf_lite" and parts.labels["descriptor"] == "fcgf_lite"
-    assert parts.descriptor.graph_key == "fcgf"
-    assert "not the published FCGF" in caplog.text
-
-
 def test_buffer_models_are_refused_here():
     with pytest.raises(InputError, match="descriptor=buffer"):
         OnnxDescriptor(MODELS_DIR / "buffer_3dmatch_desc.onnx")

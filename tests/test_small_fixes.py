@@ -11,11 +11,11 @@ REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(REPO)}
 
 
-def test_a_count_of_samples_is_what_the_header_says_and_an_alias_descriptor_names_its_model(tmp_path):
-    """samples=K is shown as such (not only as the ratio it came to); descriptor=fcgf (the alias of
-    fcgf_lite) names its run directory as its rows name the descriptor."""
-    cmd = [sys.executable, str(REPO / "run.py"), "samples=2500", "descriptor=fcgf", "limit=1", "tracker=none",
-           "progress=false"]  # fmt: skip
+def test_a_count_of_samples_is_what_the_header_says_and_the_descriptor_names_its_run(tmp_path):
+    """samples=K is shown as such (not only as the ratio it came to); the descriptor names its run
+    directory as its rows name it."""
+    cmd = [sys.executable, str(REPO / "run.py"), "samples=2500", "descriptor=fcgf_lite", "limit=1",
+           "tracker=none", "progress=false"]  # fmt: skip
     p = subprocess.run(cmd, cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     header = next(ln for ln in p.stdout.splitlines() if ln.startswith("dataset="))

@@ -152,8 +152,7 @@ class OnnxDescriptor(FeatureDescriptor):
     onnxruntime-gpu's CUDA provider when there is one, else the CPU) or a list such as ["cuda", "cpu"]
     (`session_providers`); a provider that is missing or fails to start falls back to the CPU with a notice.
     `name` (the results rows' descriptor label) is the model's `fastmac.name` metadata, else its file
-    name without extension ("fcgf_lite" for the shipped model). `alias`: the config name this front end
-    was reached under when that is not the model's name (conf/descriptor/fcgf.yaml); a warning says so.
+    name without extension ("fcgf_lite" for the shipped model).
     """
 
     name = "fcgf_lite"
@@ -170,7 +169,6 @@ class OnnxDescriptor(FeatureDescriptor):
         support_factor: float | None = None,
         threads: int = 1,
         batch_size: int = 1024,
-        alias: str | None = None,
         execution_providers="auto",
         graph_key: str | None = None,
     ) -> None:
@@ -194,16 +192,6 @@ class OnnxDescriptor(FeatureDescriptor):
         self._overrides = {"k": k, "radius_factor": radius_factor, "support_factor": support_factor}
         self._session = None
         self._open()
-        self.alias = alias
-        if alias and alias != self.name:
-            log.warning(
-                "descriptor=%s is an alias of %s (%s), a model trained in this project, not the published "
-                "FCGF network; results are labelled %s",
-                alias,
-                self.name,
-                self.model_path.name,
-                self.name,
-            )
 
     # -- model loading and the contract
 
