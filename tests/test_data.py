@@ -261,3 +261,51 @@ def test_kitti_without_range_support_says_the_archive_size(tmp_path, server):
     opt.whole_archives = True
     fetch("kitti", opt)
     assert len(list((opt.home / "kitti" / "dataset").rglob("*.bin"))) == 12
+
+
+# -- the front end follows what the data home holds ---------------------------------------------------------------
+def _mac_layout(root: Path) -> Path:
+    """MAC's released 3DMatch layout, one pair a scene: dataload.txt, A+B@corr.txt, @label.txt, @GTmat.txt."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    for scene in SCENES_3DMATCH:
+        d = root / scene
+        d.mkdir(parents=True)
+        (d / "dataload.txt").write_text("cloud_bin_1+cloud_bin_0\n")
+        src = rng.uniform(0, 2, (60, 3))
+        np.savetxt(d / "cloud_bin_1+cloud_bin_0@corr.txt", np.c_[src, src + [0.5, 0, 0]])
+        np.savetxt(d / "cloud_bin_1+cloud_bin_0@label.txt", np.ones(60), fmt="%d")
+        gt = np.eye(4)
+        gt[0, 3] = 0.5
+        np.savetxt(d / "cloud_bin_1+cloud_bin_0@GTmat.txt", gt)
+    return root
+
+
+def test_the_front_end_is_picked_by_what_is_there(tmp_path, server, monkeypatch):
+    from hydra import compose, initialize_config_dir
+
+    from fastmac_exp.descriptors.fpfh import FPFHDescriptor
+    from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
+    from fastmac_exp.resources import config_dir
+    from fastmac_exp.run.experiment import Components
+
+    opt = _opt(tmp_path, server)
+    monkeypatch.setenv("FASTMAC_DATA", str(opt.home))
+
+    def parts(*overrides):
+        with initialize_config_dir(str(config_dir()), version_base="1.3"):
+            return Components(compose("config", overrides=["dataset=3dmatch", *overrides]))
+
+    fetch("3dmatch", opt)
+    raw = parts()
+    assert isinstance(raw.descriptor, FPFHDescriptor) and len(raw.names()) == 8
+    with pytest.raises(InputError, match="descriptor=precomputed needs MAC's released fpfh correspondences"):
+        parts("descriptor=precomputed")
+    assert add("mac-3dmatch", _mac_layout(tmp_path / "mac"), opt) == "8 pairs (descriptor fpfh)"
+    pre = parts()  # the default fpfh, with MAC's FPFH correspondences there: those are read
+    assert isinstance(pre.descriptor, PrecomputedDescriptor) and pre.dataset.chosen["front_end"] == "precomputed"
+    assert pre._cache_parts["data"] != raw._cache_parts["data"]  # the cache tells the two apart
+    assert pre.dataset.load(0).correspondences is not None
+    forced = parts("dataset.front_end=raw")
+    assert isinstance(forced.descriptor, FPFHDescriptor) and forced.dataset.load(0).src_cloud is not None
