@@ -112,8 +112,10 @@ class FixtureServer:
 
 # -- fixture archives ---------------------------------------------------------------------------------------
 def ply_bytes(xyz: np.ndarray) -> bytes:
-    head = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\n"
-            "property float x\nproperty float y\nproperty float z\nend_header\n")  # fmt: skip
+    head = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
     return head.encode() + np.ascontiguousarray(xyz, dtype="<f4").tobytes()
 
 
@@ -141,15 +143,19 @@ def threedmatch_archives(points: int = 10000) -> dict[str, bytes]:
     out = {}
     for k, scene in enumerate(SCENES_3DMATCH):
         pair = generate_pair(cfg, 11, k)
-        out[f"{scene}.zip"] = zip_bytes({
-            f"{scene}/cloud_bin_0.ply": ply_bytes(pair["tgt"]),
-            f"{scene}/cloud_bin_1.ply": ply_bytes(pair["src"]),
-        })  # fmt: skip
+        out[f"{scene}.zip"] = zip_bytes(
+            {
+                f"{scene}/cloud_bin_0.ply": ply_bytes(pair["tgt"]),
+                f"{scene}/cloud_bin_1.ply": ply_bytes(pair["src"]),
+            }
+        )
         info = "0\t1\t2\n" + "\n".join("\t".join(["1.0"] * 6) for _ in range(6)) + "\n"
-        out[f"{scene}-evaluation.zip"] = zip_bytes({
-            f"{scene}-evaluation/gt.log": gt_log([(0, 1, 2, pair["gt"])]),
-            f"{scene}-evaluation/gt.info": info.encode(),
-        })  # fmt: skip
+        out[f"{scene}-evaluation.zip"] = zip_bytes(
+            {
+                f"{scene}-evaluation/gt.log": gt_log([(0, 1, 2, pair["gt"])]),
+                f"{scene}-evaluation/gt.info": info.encode(),
+            }
+        )
     return out
 
 
@@ -181,8 +187,11 @@ def kitti_archives(frames: int = 14, step: float = 2.0, points: int = 1200) -> d
         for f in range(frames):
             scan = np.c_[rng.uniform(-40, 40, (points, 3)), rng.uniform(0, 1, points)].astype("<f4")
             velo[f"dataset/sequences/{seq:02d}/velodyne/{f:06d}.bin"] = scan.tobytes()
-    return {"data_odometry_poses.zip": zip_bytes(poses), "data_odometry_calib.zip": zip_bytes(calib),
-            "data_odometry_velodyne.zip": zip_bytes(velo, zipfile.ZIP_STORED)}  # fmt: skip (scans stored, as KITTI's)
+    return {
+        "data_odometry_poses.zip": zip_bytes(poses),
+        "data_odometry_calib.zip": zip_bytes(calib),
+        "data_odometry_velodyne.zip": zip_bytes(velo, zipfile.ZIP_STORED),
+    }  # scans stored, as KITTI stores them
 
 
 def sources_file(path: Path, mirrors: dict[str, list[str]], datasets: dict | None = None) -> Path:

@@ -25,7 +25,13 @@ from fastmac_exp.data.kitti import NeedsWholeArchive, fcgf_test_pairs, scan_memb
 from fastmac_exp.data.sources import load_registry
 from fastmac_exp.datasets.mac_layout import SCENES_3DMATCH
 from fastmac_exp.errors import InputError
-from tests.data_fixtures import FixtureServer, kitti_archives, lomatch_files, sources_file, threedmatch_archives
+from tests.data_fixtures import (
+    FixtureServer,
+    kitti_archives,
+    lomatch_files,
+    sources_file,
+    threedmatch_archives,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,21 +57,32 @@ def server(archives):
 def _sources(tmp_path: Path, server: FixtureServer, first: str = "a", lomatch_pins: bool = False) -> Path:
     lo = {}
     if lomatch_pins:
-        files = [{"path": rel, "mirrors": "lomatch-gt", "unpack": "none", "size": len(server.files[f"/lo/{rel}"]),
-                  "sha256": hashlib.sha256(server.files[f"/lo/{rel}"]).hexdigest()}
-                 for rel in sorted(k.removeprefix("/lo/") for k in server.files if k.startswith("/lo/"))]  # fmt: skip
+        files = [
+            {
+                "path": rel,
+                "mirrors": "lomatch-gt",
+                "unpack": "none",
+                "size": len(server.files[f"/lo/{rel}"]),
+                "sha256": hashlib.sha256(server.files[f"/lo/{rel}"]).hexdigest(),
+            }
+            for rel in sorted(k.removeprefix("/lo/") for k in server.files if k.startswith("/lo/"))
+        ]
         lo = {"3dlomatch": {"title": "fixture", "needs": ["3dmatch"], "check": "lomatch", "files": files}}
     return sources_file(
         tmp_path / "sources.yaml",
-        {"princeton-fragments": [f"{server.base}/{first}/", f"{server.base}/b/"],
-         "lomatch-gt": [f"{server.base}/bad-lo/", f"{server.base}/lo/"],
-         "kitti-odometry": [f"{server.base}/kitti/"]},
+        {
+            "princeton-fragments": [f"{server.base}/{first}/", f"{server.base}/b/"],
+            "lomatch-gt": [f"{server.base}/bad-lo/", f"{server.base}/lo/"],
+            "kitti-odometry": [f"{server.base}/kitti/"],
+        },
         lo,
-    )  # fmt: skip
+    )
 
 
 def _opt(tmp_path: Path, server: FixtureServer, **kw) -> Options:
-    return Options(home=tmp_path / "home", registry=load_registry(_sources(tmp_path, server, **kw)), progress=False)
+    return Options(
+        home=tmp_path / "home", registry=load_registry(_sources(tmp_path, server, **kw)), progress=False
+    )
 
 
 def _served(server: FixtureServer, prefix: str) -> int:
@@ -80,19 +97,31 @@ def _env(tmp_path: Path, sources: Path | None) -> dict[str, str]:
     return env
 
 
-# -- the two README commands on the fixture ------------------------------------------------------------------
+# -- the two README commands on the fixture --
 def test_fetch_then_headline_command_runs_with_no_other_key(tmp_path, server, archives):
     env = _env(tmp_path, _sources(tmp_path, server))
-    f = subprocess.run([sys.executable, "-m", "fastmac_exp", "data", "fetch", "3dmatch"], cwd=tmp_path, env=env,
-                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    f = subprocess.run(
+        [sys.executable, "-m", "fastmac_exp", "data", "fetch", "3dmatch"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert f.returncode == 0, f.stderr
     assert "3dmatch: complete: 8 scenes, 16 fragments, 8 pairs" in f.stdout
     assert "run it: python run.py dataset=3dmatch" in f.stdout
     assert _served(server, "/a/") == sum(len(d) for d in archives.values()) and _served(server, "/b/") == 0
     home = tmp_path / "home" / "3dmatch"
     assert (home / SCENES_3DMATCH[0] / "cloud_bin_1.ply").is_file() and not list(home.rglob("*.part"))
-    r = subprocess.run([sys.executable, str(REPO / "run.py"), "sampler=highpass", "ratio=0.05", "dataset=3dmatch"],
-                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    r = subprocess.run(
+        [sys.executable, str(REPO / "run.py"), "sampler=highpass", "ratio=0.05", "dataset=3dmatch"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     run_dir = next((tmp_path / "outputs" / "runs").iterdir())
     rows = pd.read_csv(run_dir / "results.csv")
@@ -104,17 +133,29 @@ def test_fetch_then_headline_command_runs_with_no_other_key(tmp_path, server, ar
 
 
 def test_without_data_the_run_names_the_fetch_command_and_exits_2(tmp_path):
-    r = subprocess.run([sys.executable, str(REPO / "run.py"), "dataset=3dmatch"], cwd=tmp_path,
-                       env=_env(tmp_path, None), capture_output=True, text=True, timeout=120)  # fmt: skip
+    r = subprocess.run(
+        [sys.executable, str(REPO / "run.py"), "dataset=3dmatch"],
+        cwd=tmp_path,
+        env=_env(tmp_path, None),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     out = r.stdout + r.stderr
     assert r.returncode == 2
     assert "fastmac-exp data fetch 3dmatch  (about 1.3 GB)" in out and "Traceback" not in out
-    r = subprocess.run([sys.executable, "-m", "fastmac_exp.data", "path", "3dlomatch"], cwd=tmp_path,
-                       env=_env(tmp_path, None), capture_output=True, text=True, timeout=60)  # fmt: skip
+    r = subprocess.run(
+        [sys.executable, "-m", "fastmac_exp.data", "path", "3dlomatch"],
+        cwd=tmp_path,
+        env=_env(tmp_path, None),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 1 and r.stdout.strip() == str(tmp_path / "home" / "3dlomatch")
 
 
-# -- resumable, atomic ----------------------------------------------------------------------------------------
+# -- resumable, atomic --
 def test_a_cut_connection_resumes_where_it_stopped(tmp_path, server, archives):
     name = f"{SCENES_3DMATCH[0]}.zip"
     server.cut[f"/a/{name}"], server.cuts[f"/a/{name}"] = 5000, 2
@@ -154,7 +195,7 @@ def test_a_server_without_range_support_starts_the_file_over(tmp_path, server, a
     assert "ignores range requests" in caplog.text
 
 
-# -- checks and mirrors -----------------------------------------------------------------------------------------
+# -- checks and mirrors --
 def test_a_corrupted_archive_is_kept_aside_and_the_next_mirror_used(tmp_path, server, archives, caplog):
     name = f"{SCENES_3DMATCH[0]}-evaluation.zip"
     server.files[f"/a/{name}"] = archives[name][:-40] + b"\0" * 40  # the zip's directory is gone
@@ -163,7 +204,10 @@ def test_a_corrupted_archive_is_kept_aside_and_the_next_mirror_used(tmp_path, se
         fetch("3dmatch", opt)
     kept = list((opt.home / "quarantine").glob(f"{name}.*"))
     assert len(kept) == 2 and any(k.read_bytes() == server.files[f"/a/{name}"] for k in kept)
-    assert "not a readable zip" in caplog.text and f"trying the next mirror {server.base}/b/{name}" in caplog.text
+    assert (
+        "not a readable zip" in caplog.text
+        and f"trying the next mirror {server.base}/b/{name}" in caplog.text
+    )
     assert Manifest(opt.home / "3dmatch").source(name)["url"] == f"{server.base}/b/{name}"
 
 
@@ -173,7 +217,10 @@ def test_a_404_goes_to_the_next_mirror_in_one_line(tmp_path, server, caplog):
         fetch("3dlomatch", opt)  # needs 3dmatch: fetched first, from the second mirror
     lines = [r.getMessage() for r in caplog.records]
     first = f"{server.base}/gone/{SCENES_3DMATCH[0]}.zip"
-    assert f"{first}: HTTP 404 Not Found; trying the next mirror {server.base}/b/{SCENES_3DMATCH[0]}.zip" in lines
+    assert (
+        f"{first}: HTTP 404 Not Found; trying the next mirror {server.base}/b/{SCENES_3DMATCH[0]}.zip"
+        in lines
+    )
     assert Manifest(opt.home / "3dlomatch").complete and Manifest(opt.home / "3dmatch").complete
     assert all("\n" not in line for line in lines)
 
@@ -197,9 +244,18 @@ def test_no_mirror_left_is_one_error_naming_what_to_do(tmp_path, server):
 
 
 def test_a_fetch_larger_than_the_free_disk_is_refused(tmp_path, server):
-    path = sources_file(tmp_path / "s.yaml", {"princeton-fragments": [f"{server.base}/a/"]},
-                        {"3dmatch": {"title": "t", "size": 10**18, "check": "fragments",
-                                     "files": [{"path": f"{SCENES_3DMATCH[0]}.zip", "mirrors": "princeton-fragments"}]}})  # fmt: skip
+    path = sources_file(
+        tmp_path / "s.yaml",
+        {"princeton-fragments": [f"{server.base}/a/"]},
+        {
+            "3dmatch": {
+                "title": "t",
+                "size": 10**18,
+                "check": "fragments",
+                "files": [{"path": f"{SCENES_3DMATCH[0]}.zip", "mirrors": "princeton-fragments"}],
+            }
+        },
+    )
     with pytest.raises(FetchError, match="needs 1000000000.00 GB"):
         fetch("3dmatch", Options(home=tmp_path / "h", registry=load_registry(path), progress=False))
     assert not server.served
@@ -218,7 +274,7 @@ def test_verify_finds_a_changed_file_and_the_structure_check_a_missing_one(tmp_p
         fetch_mod.run_check("fragments", opt.home / "3dmatch", opt.home)
 
 
-# -- add ----------------------------------------------------------------------------------------------------
+# -- add --
 def test_add_from_local_archives_and_folders(tmp_path, archives, server):
     downloads = tmp_path / "dl"
     downloads.mkdir()
@@ -237,7 +293,7 @@ def test_add_from_local_archives_and_folders(tmp_path, archives, server):
     assert not server.served
 
 
-# -- KITTI: members by range requests ---------------------------------------------------------------------------
+# -- KITTI: members by range requests --
 def test_kitti_fetches_only_the_scans_of_the_test_pairs(tmp_path, server):
     opt = _opt(tmp_path, server)
     summary = fetch("kitti", opt)
@@ -245,7 +301,11 @@ def test_kitti_fetches_only_the_scans_of_the_test_pairs(tmp_path, server):
     pairs = fcgf_test_pairs(root)
     scans = {scan_member(s, f) for s, a, b in pairs for f in (a, b)}
     have = {p.relative_to(opt.home / "kitti").as_posix() for p in root.rglob("*.bin")}
-    assert have == scans and len(pairs) == 3 * 2 and summary.endswith(f"{len(pairs)} pairs over {len(scans)} scans")
+    assert (
+        have == scans
+        and len(pairs) == 3 * 2
+        and summary.endswith(f"{len(pairs)} pairs over {len(scans)} scans")
+    )
     velo = len(server.files["/kitti/data_odometry_velodyne.zip"])
     assert _served(server, "/kitti/data_odometry_velodyne.zip") < velo / 4
     before = dict(server.served)
@@ -263,7 +323,7 @@ def test_kitti_without_range_support_says_the_archive_size(tmp_path, server):
     assert len(list((opt.home / "kitti" / "dataset").rglob("*.bin"))) == 12
 
 
-# -- the front end follows what the data home holds ---------------------------------------------------------------
+# -- the front end follows what the data home holds --
 def _mac_layout(root: Path) -> Path:
     """MAC's released 3DMatch layout, one pair a scene: dataload.txt, A+B@corr.txt, @label.txt, @GTmat.txt."""
     import numpy as np
@@ -304,7 +364,9 @@ def test_the_front_end_is_picked_by_what_is_there(tmp_path, server, monkeypatch)
         parts("descriptor=precomputed")
     assert add("mac-3dmatch", _mac_layout(tmp_path / "mac"), opt) == "8 pairs (descriptor fpfh)"
     pre = parts()  # the default fpfh, with MAC's FPFH correspondences there: those are read
-    assert isinstance(pre.descriptor, PrecomputedDescriptor) and pre.dataset.chosen["front_end"] == "precomputed"
+    assert (
+        isinstance(pre.descriptor, PrecomputedDescriptor) and pre.dataset.chosen["front_end"] == "precomputed"
+    )
     assert pre._cache_parts["data"] != raw._cache_parts["data"]  # the cache tells the two apart
     assert pre.dataset.load(0).correspondences is not None
     forced = parts("dataset.front_end=raw")

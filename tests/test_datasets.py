@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from fastmac_exp.data.benchmarks import Kitti, ThreeDLoMatch, ThreeDMatch
 from fastmac_exp.datasets.fragments import FCGF_EXCLUDED, Fragments3DMatch, KittiRaw, fcgf_pairs
 from fastmac_exp.datasets.mac_layout import (
     SCENES_3DLOMATCH,
@@ -25,7 +26,6 @@ from fastmac_exp.datasets.user_pairs import (
     resolve_shared_root,
 )
 from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
-from fastmac_exp.data.benchmarks import Kitti, ThreeDLoMatch, ThreeDMatch
 from fastmac_exp.errors import InputError
 from fastmac_exp.geometry.resolution import pair_resolution
 from fastmac_exp.geometry.transforms import random_rotation
@@ -535,7 +535,11 @@ def test_precomputed_descriptor():
 @pytest.mark.parametrize(
     "config, cls, extra",
     [
-        ("3dmatch", ThreeDMatch, {"descriptor": "fcgf", "scenes": None, "resolution": None, "front_end": "auto"}),
+        (
+            "3dmatch",
+            ThreeDMatch,
+            {"descriptor": "fcgf", "scenes": None, "resolution": None, "front_end": "auto"},
+        ),
         ("3dlomatch", ThreeDLoMatch, {"descriptor": "fcgf", "front_end": "auto"}),
         ("kitti", Kitti, {"descriptor": "fcgf", "front_end": "auto"}),
         ("fragments_3dmatch", Fragments3DMatch, {"family": "3dmatch", "gt_root": None}),

@@ -38,21 +38,29 @@ RULES: dict[str, list[tuple[re.Pattern, str]]] = {
     "3dlomatch": [(re.compile(rf"(?:^|/){_SCENE}(?:{LOMATCH_SUFFIX})?/(gt\.log|gt\.info)$"), r"\1/\2")],
     "kitti": [
         (re.compile(rf"(?:^|/)(?:dataset/)?(poses/{_SEQ}\.txt)$"), r"dataset/\1"),
-        (re.compile(rf"(?:^|/)(?:dataset/)?(sequences/{_SEQ}/(?:calib\.txt|velodyne/\d{{6}}\.bin))$"), r"dataset/\1"),
+        (
+            re.compile(rf"(?:^|/)(?:dataset/)?(sequences/{_SEQ}/(?:calib\.txt|velodyne/\d{{6}}\.bin))$"),
+            r"dataset/\1",
+        ),
     ],
     "mac-3dmatch": [(re.compile(rf"(?:^|/){_SCENE}/{_MAC_FILE}$"), r"\1/\2")],
-    "mac-3dlomatch": [(re.compile(rf"(?:^|/){_SCENE}{LOMATCH_SUFFIX}/{_MAC_FILE}$"), rf"\1{LOMATCH_SUFFIX}/\2")],
+    "mac-3dlomatch": [
+        (re.compile(rf"(?:^|/){_SCENE}{LOMATCH_SUFFIX}/{_MAC_FILE}$"), rf"\1{LOMATCH_SUFFIX}/\2")
+    ],
     "mac-kitti": [(re.compile(r"(?:^|/)(\d+)/([A-Za-z0-9_]+@(?:corr|gtmat|gtlabel)\.txt)$"), r"\1/\2")],
 }
 FORMS = {
-    "3dmatch": "the 3DMatch toolbox's per-scene zips (<scene>.zip, <scene>-evaluation.zip) or a folder of them, "
-    "Predator's 3dmatch.zip, or a folder <scene>/cloud_bin_*.ply with <scene>-evaluation/gt.log or <scene>/gt.log",
-    "3dlomatch": "a folder (or zip) of <scene>/gt.log: GeoTransformer's data/3DMatch/metadata/benchmarks/3DLoMatch "
+    "3dmatch": "the 3DMatch toolbox's per-scene zips (<scene>.zip, <scene>-evaluation.zip) or a folder of "
+    "them, Predator's 3dmatch.zip, or a folder <scene>/cloud_bin_*.ply with <scene>-evaluation/gt.log or "
+    "<scene>/gt.log",
+    "3dlomatch": "a folder (or zip) of <scene>/gt.log: GeoTransformer's "
+    "data/3DMatch/metadata/benchmarks/3DLoMatch "
     "or Predator's configs/benchmarks/3DLoMatch",
     "kitti": "KITTI's data_odometry_{poses,calib,velodyne}.zip or their unpacked dataset/ folder",
     "mac-3dmatch": "a folder (or zip) in MAC's layout: <scene>/dataload.txt and <scene>/A+B@corr.txt ...",
     "mac-3dlomatch": "a folder (or zip) in MAC's layout with <scene>_3dlomatch/ folders",
-    "mac-kitti": "a folder (or zip) of numbered pair folders <i>/<desc>@corr.txt ... (or correspondence_<desc>/)",
+    "mac-kitti": "a folder (or zip) of numbered pair folders <i>/<desc>@corr.txt ... "
+    "(or correspondence_<desc>/)",
 }
 
 
@@ -100,12 +108,12 @@ def add(name: str, path: Path, opt: Options) -> str:
     files = {}
     if name == "kitti":
         scans = [f for f in found if "/velodyne/" in f[1]]
-        for rel, dest, op in [f for f in found if f not in scans]:
+        for _, dest, op in [f for f in found if f not in scans]:
             with op() as src:
                 files[dest] = write_whole(src, folder / dest)
         wanted = fcgf_scan_members(folder)
         found = [f for f in scans if f[1] in wanted]
-    for rel, dest, op in found:
+    for _, dest, op in found:
         with op() as src:
             files[dest] = write_whole(src, folder / dest)
     log.info("%s: %d files from %s into %s", name, len(files), path, folder)

@@ -76,7 +76,9 @@ class _Benchmark:
         from fastmac_exp.descriptors.precomputed import PrecomputedDescriptor
 
         if self.front_end not in FRONT_ENDS:
-            raise InputError(f"dataset.front_end must be one of {', '.join(FRONT_ENDS)}, got {self.front_end!r}")
+            raise InputError(
+                f"dataset.front_end must be one of {', '.join(FRONT_ENDS)}, got {self.front_end!r}"
+            )
         wants_pre = descriptor.name == "precomputed"
         key = descriptor.graph_key if wants_pre else "fpfh"
         mac_root = self._mac_root(key)
@@ -93,14 +95,21 @@ class _Benchmark:
             self._inner = self._precomputed(mac_root)
             self.chosen = {"front_end": "precomputed", "root": str(mac_root), "graph_key": key}
             if not wants_pre:
-                log.info("%s: MAC's released %s correspondences in %s (dataset.front_end=raw computes them "
-                         "from the fragments instead)", self.name, key, mac_root)  # fmt: skip
+                log.info(
+                    "%s: MAC's released %s correspondences in %s (dataset.front_end=raw computes them "
+                    "from the fragments instead)",
+                    self.name,
+                    key,
+                    mac_root,
+                )
                 descriptor = PrecomputedDescriptor(graph_key=key)
             return descriptor
         raw_root = self._raw_root()
         self._inner = self._raw(raw_root, data_home())
         self.chosen = {"front_end": "raw", "root": str(raw_root)}
-        log.info("%s: raw %s in %s through descriptor %s", self.name, self._what_raw(), raw_root, descriptor.name)
+        log.info(
+            "%s: raw %s in %s through descriptor %s", self.name, self._what_raw(), raw_root, descriptor.name
+        )
         return descriptor
 
     def _mac_root(self, key: str) -> Path | None:
@@ -140,7 +149,8 @@ class _Benchmark:
         where = self.root if self.root is not None else dataset_dir(self.mac_set, data_home())
         manual = load_registry().get(self.mac_set).manual
         return InputError(
-            f"{self.name}: descriptor=precomputed needs MAC's released {key} correspondences, and {where} has "
+            f"{self.name}: descriptor=precomputed needs MAC's released {key} correspondences, and {where} "
+            "has "
             f"none. {manual}. Or drop descriptor=precomputed to compute FPFH from the raw data "
             f"(`fastmac-exp data fetch {self.raw_set}`)"
         )
@@ -171,9 +181,16 @@ class ThreeDMatch(_Benchmark):
     raw_set, mac_set = "3dmatch", "mac-3dmatch"
     mac_class = ThreeDMatchMAC
 
-    def __init__(self, root=None, descriptor: str = "fpfh", front_end: str = "auto", scenes=None,
-                 resolution: float | None = None, voxel_size: float = FAMILIES["3dmatch"].voxel_size,
-                 gt_root=None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        root=None,
+        descriptor: str = "fpfh",
+        front_end: str = "auto",
+        scenes=None,
+        resolution: float | None = None,
+        voxel_size: float = FAMILIES["3dmatch"].voxel_size,
+        gt_root=None,
+    ) -> None:
         super().__init__(root, descriptor, front_end)
         self.scenes = scenes
         self.resolution = resolution
@@ -184,15 +201,23 @@ class ThreeDMatch(_Benchmark):
         return bool(mac_descriptors(root, False))
 
     def _precomputed(self, root: Path):
-        return self.mac_class(root=root, descriptor=self.descriptor, scenes=self.scenes, resolution=self.resolution)
+        return self.mac_class(
+            root=root, descriptor=self.descriptor, scenes=self.scenes, resolution=self.resolution
+        )
 
     def _gt_root(self, home: Path) -> Path | None:
         return None if self.gt_root is None else Path(self.gt_root)
 
     def _raw(self, root: Path, home: Path):
         scenes = None if self.scenes is None else [s.removesuffix("_3dlomatch") for s in self.scenes]
-        return Fragments3DMatch(root=root, gt_root=self._gt_root(home), scenes=scenes, family=self.family,
-                                voxel_size=self.voxel_size, resolution=self.resolution)  # fmt: skip
+        return Fragments3DMatch(
+            root=root,
+            gt_root=self._gt_root(home),
+            scenes=scenes,
+            family=self.family,
+            voxel_size=self.voxel_size,
+            resolution=self.resolution,
+        )
 
 
 class ThreeDLoMatch(ThreeDMatch):
@@ -208,8 +233,10 @@ class ThreeDLoMatch(ThreeDMatch):
         logs = super()._raw_root()  # the 3dlomatch logs; the fragments are the 3dmatch data set's
         frags = _usable("3dmatch", data_home())
         if frags is None:
-            raise InputError(f"3dlomatch: the logs are in {logs} but the fragments are not; "
-                             "fetch them with: fastmac-exp data fetch 3dmatch")  # fmt: skip
+            raise InputError(
+                f"3dlomatch: the logs are in {logs} but the fragments are not; "
+                "fetch them with: fastmac-exp data fetch 3dmatch"
+            )
         self._logs = logs
         return frags
 
@@ -223,8 +250,13 @@ class Kitti(_Benchmark):
     name = family = "kitti"
     raw_set, mac_set = "kitti", "mac-kitti"
 
-    def __init__(self, root=None, descriptor: str = "fpfh", front_end: str = "auto",
-                 voxel_size: float = FAMILIES["kitti"].voxel_size) -> None:  # fmt: skip
+    def __init__(
+        self,
+        root=None,
+        descriptor: str = "fpfh",
+        front_end: str = "auto",
+        voxel_size: float = FAMILIES["kitti"].voxel_size,
+    ) -> None:
         super().__init__(root, descriptor, front_end)
         self.voxel_size = voxel_size
 
@@ -236,4 +268,6 @@ class Kitti(_Benchmark):
 
     def _raw(self, root: Path, home: Path):
         dataset = root / "dataset" if (root / "dataset" / "poses").is_dir() else root
-        return KittiRaw(root=dataset, pairs=[list(p) for p in fcgf_test_pairs(dataset)], voxel_size=self.voxel_size)
+        return KittiRaw(
+            root=dataset, pairs=[list(p) for p in fcgf_test_pairs(dataset)], voxel_size=self.voxel_size
+        )

@@ -13,8 +13,24 @@ from fastmac_exp.datasets.mac_layout import SCENES_3DMATCH, KittiMAC, ThreeDLoMa
 from fastmac_exp.errors import InputError
 
 MIN_POINTS = 1000  # a 3DMatch fragment holds 10^5-10^6 points, a KITTI scan ~1.2 x 10^5
-PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}  # fmt: skip
+PLY_SIZES = {
+    "char": 1,
+    "uchar": 1,
+    "int8": 1,
+    "uint8": 1,
+    "short": 2,
+    "ushort": 2,
+    "int16": 2,
+    "uint16": 2,
+    "int": 4,
+    "uint": 4,
+    "int32": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 
 
 def ply_points(path: Path) -> int:
@@ -54,7 +70,9 @@ def _gt_log(folder: Path, scene: str) -> Path:
     for cand in (folder / f"{scene}-evaluation" / "gt.log", folder / scene / "gt.log"):
         if cand.is_file():
             return cand
-    raise InputError(f"{folder}: no gt.log for scene {scene} (looked for {scene}-evaluation/gt.log, {scene}/gt.log)")
+    raise InputError(
+        f"{folder}: no gt.log for scene {scene} (looked for {scene}-evaluation/gt.log, {scene}/gt.log)"
+    )
 
 
 def _fragments_named(log: Path, frag_dir: Path, problems: list[str], seen: dict[Path, int]) -> int:
@@ -128,9 +146,12 @@ def check_kitti(folder: Path, home: Path) -> str:
         if not p.is_file():
             problems.append(f"{p} missing")
         elif p.stat().st_size % 16 or p.stat().st_size // 16 < MIN_POINTS:
-            problems.append(f"{p}: {p.stat().st_size} bytes, not a scan of {MIN_POINTS}+ float32 x y z r points")
+            problems.append(
+                f"{p}: {p.stat().st_size} bytes, not a scan of {MIN_POINTS}+ float32 x y z r points"
+            )
     _fail(f"kitti in {folder}", problems)
-    return f"sequences {', '.join(f'{s:02d}' for s in KITTI_SEQUENCES)}: {len(pairs)} pairs over {len(scans)} scans"
+    seqs = ", ".join(f"{s:02d}" for s in KITTI_SEQUENCES)
+    return f"sequences {seqs}: {len(pairs)} pairs over {len(scans)} scans"
 
 
 def _check_mac(dataset, folder: Path) -> str:
@@ -150,7 +171,9 @@ def mac_descriptors(folder: Path, kitti: bool) -> list[str]:
     if kitti:
         sub = next((p for p in folder.iterdir() if p.is_dir() and p.name.isdigit()), None)
         found = {p.name.split("@")[0] for p in sub.glob("*@corr.txt")} if sub else set()
-        found |= {p.name.removeprefix("correspondence_") for p in folder.glob("correspondence_*") if p.is_dir()}
+        found |= {
+            p.name.removeprefix("correspondence_") for p in folder.glob("correspondence_*") if p.is_dir()
+        }
         return sorted(found)
     scenes = [p for p in sorted(folder.iterdir()) if p.is_dir()]
     out = []
@@ -166,7 +189,9 @@ def _mac_checker(cls) -> Callable[[Path, Path], str]:
         kitti = cls is KittiMAC
         descs = mac_descriptors(folder, kitti)
         if not descs:
-            raise InputError(f"{folder}: no MAC-layout correspondences (dataload.txt / <desc>@corr.txt) found")
+            raise InputError(
+                f"{folder}: no MAC-layout correspondences (dataload.txt / <desc>@corr.txt) found"
+            )
         return "; ".join(_check_mac(cls(root=folder, descriptor=d), folder) for d in descs)
 
     return check

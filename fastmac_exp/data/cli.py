@@ -18,22 +18,32 @@ from fastmac_exp.data.sources import human_size
 from fastmac_exp.errors import InputError
 
 log = logging.getLogger("fastmac_exp.data")
-RUN_HINT = {"3dmatch": "3dmatch", "3dlomatch": "3dlomatch", "kitti": "kitti", "mac-3dmatch": "3dmatch",
-            "mac-3dlomatch": "3dlomatch", "mac-kitti": "kitti"}  # fmt: skip
+RUN_HINT = {
+    "3dmatch": "3dmatch",
+    "3dlomatch": "3dlomatch",
+    "kitti": "kitti",
+    "mac-3dmatch": "3dmatch",
+    "mac-3dlomatch": "3dlomatch",
+    "mac-kitti": "kitti",
+}
 
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fastmac-exp data",
-        description="The benchmarks' data in the data home ($FASTMAC_DATA, else the user data folder; docs/data.md).",
+        description="The benchmarks' data in the data home ($FASTMAC_DATA, else the user data folder; "
+        "docs/data.md).",
     )
     sub = p.add_subparsers(dest="command", required=True)
     ls = sub.add_parser("list", help="the data sets, their size and what the data home holds")
     ls.add_argument("--urls", action="store_true", help="every file's mirrors, in the order they are tried")
     f = sub.add_parser("fetch", help="download, check and file a data set (resumes an interrupted fetch)")
     f.add_argument("name")
-    f.add_argument("--whole-archives", action="store_true",
-                   help="download whole archives where only members are needed (a server without range requests)")
+    f.add_argument(
+        "--whole-archives",
+        action="store_true",
+        help="download whole archives where only members are needed (a server without range requests)",
+    )
     f.add_argument("--no-progress", action="store_true", help="no progress bars")
     a = sub.add_parser("add", help="file a copy you have (zip or folder) into the data home")
     a.add_argument("name")
@@ -70,12 +80,17 @@ def cmd_list(args, opt) -> int:
 def cmd_fetch(args, opt) -> int:
     ds = opt.registry.get(args.name)
     if ds.fetchable:
-        print(f"fetch {ds.name}: {ds.title}\n  {len(ds.files)} files, about {human_size(ds.size)}, into "
-              f"{dataset_dir(ds.name, opt.home)}\n  licence: {ds.licence}")  # fmt: skip
+        print(
+            f"fetch {ds.name}: {ds.title}\n  {len(ds.files)} files, about {human_size(ds.size)}, into "
+            f"{dataset_dir(ds.name, opt.home)}\n  licence: {ds.licence}"
+        )
     try:
         summary = fetch(args.name, opt)
     except NeedsWholeArchive as exc:
-        if not sys.stdin.isatty() or input(f"{exc}\nDownload the whole archive ({human_size(exc.size)})? [y/N] ")[:1].lower() != "y":
+        if (
+            not sys.stdin.isatty()
+            or input(f"{exc}\nDownload the whole archive ({human_size(exc.size)})? [y/N] ")[:1].lower() != "y"
+        ):
             raise
         opt.whole_archives = True
         summary = fetch(args.name, opt)
@@ -121,7 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     log.setLevel(logging.INFO)
     log.propagate = False
     try:
-        opt = options(home=data_home(), progress=not getattr(args, "no_progress", False) and sys.stderr.isatty())
+        opt = options(
+            home=data_home(), progress=not getattr(args, "no_progress", False) and sys.stderr.isatty()
+        )
         if getattr(args, "whole_archives", False):
             opt.whole_archives = True
         return COMMANDS[args.command](args, opt)

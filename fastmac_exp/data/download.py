@@ -125,7 +125,8 @@ def fetch_file(
         os.replace(part, dest)
         return Fetched(dest, url, got, digest)
     raise FetchError(
-        f"{dest.name}: no mirror delivered it ({'; '.join(tried) or 'no mirror listed'}). Download it by hand "
+        f"{dest.name}: no mirror delivered it ({'; '.join(tried) or 'no mirror listed'}). Download it by "
+        "hand "
         f"and file it with `fastmac-exp data add`, or list a mirror that has it in $FASTMAC_DATA_SOURCES "
         "(docs/data.md)"
     )
@@ -165,7 +166,9 @@ def _download(session: requests.Session, url: str, part: Path, size: int | None,
                 log.warning("%s: the server ignores range requests; starting the file over from 0", url)
                 have = 0
             elif r.status_code == 206 and not r.headers.get("Content-Range", "").startswith(f"bytes {have}-"):
-                raise _MirrorFailed(f"answered a range from byte {have} with {r.headers.get('Content-Range')!r}")
+                raise _MirrorFailed(
+                    f"answered a range from byte {have} with {r.headers.get('Content-Range')!r}"
+                )
             length = r.headers.get("Content-Length")
             total = have + int(length) if length is not None else size
             check_space(part.parent, None if total is None else total - have, part.name.removesuffix(".part"))
@@ -192,10 +195,19 @@ def _download(session: requests.Session, url: str, part: Path, size: int | None,
 
 
 def _stream(r: requests.Response, part: Path, have: int, total: int | None, progress: bool) -> None:
-    with open(part, "ab" if have else "wb") as f, tqdm(
-        total=total, initial=have, unit="B", unit_scale=True, unit_divisor=1024,
-        desc=part.name.removesuffix(".part")[-40:], disable=not progress, leave=False,
-    ) as bar:  # fmt: skip
+    with (
+        open(part, "ab" if have else "wb") as f,
+        tqdm(
+            total=total,
+            initial=have,
+            unit="B",
+            unit_scale=True,
+            unit_divisor=1024,
+            desc=part.name.removesuffix(".part")[-40:],
+            disable=not progress,
+            leave=False,
+        ) as bar,
+    ):
         for chunk in r.iter_content(CHUNK):
             f.write(chunk)
             bar.update(len(chunk))
@@ -208,7 +220,11 @@ def _total_from_range(header: str) -> int | None:
 
 def _reason(exc: BaseException) -> str:
     text = str(exc)
-    for marker in ("Failed to establish a new connection:", "Connection refused", "Name or service not known"):
+    for marker in (
+        "Failed to establish a new connection:",
+        "Connection refused",
+        "Name or service not known",
+    ):
         if marker in text:
             return marker.rstrip(":").lower() if marker.endswith(":") else marker.lower()
     return type(exc).__name__ + (f": {text[:160]}" if text else "")

@@ -86,7 +86,9 @@ def _fetch_one(ds: DataSet, sf: SourceFile, folder: Path, opt: Options, session)
         else:
             keep_aside(dest, quarantine_dir(opt.home), why or "sha256 mismatch")
     if got is None:
-        f = fetch_file(sf.urls, dest, quarantine_dir(opt.home), sf.size, sf.sha256, validate, opt.progress, session)
+        f = fetch_file(
+            sf.urls, dest, quarantine_dir(opt.home), sf.size, sf.sha256, validate, opt.progress, session
+        )
         got = (f.url, f.size, f.sha256)
     if sf.unpack == "zip":
         files = unpack_zip(dest, folder, select)

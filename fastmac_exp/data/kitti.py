@@ -39,7 +39,9 @@ def fcgf_test_pairs(root: Path, sequences: Sequence[int] = KITTI_SEQUENCES) -> l
     out = []
     for seq in sequences:
         poses = read_kitti_poses(root / "poses" / f"{seq:02d}.txt")
-        out += [(seq, a, b) for a, b in fcgf_pairs(poses, range(len(poses))) if (seq, a, b) not in FCGF_EXCLUDED]
+        out += [
+            (seq, a, b) for a, b in fcgf_pairs(poses, range(len(poses))) if (seq, a, b) not in FCGF_EXCLUDED
+        ]
     return out
 
 
@@ -89,8 +91,15 @@ def _members_into(z: zipfile.ZipFile, folder: Path, select: Callable[[str], bool
     todo = [i for i in chosen if not _have(folder / i.filename, i.file_size)]
     check_space(folder, sum(i.file_size for i in todo), "the archive's members")
     out = {}
-    with tqdm(total=sum(i.file_size for i in todo), unit="B", unit_scale=True, unit_divisor=1024,
-              desc=f"{len(todo)} members", disable=not progress or not todo, leave=False) as bar:  # fmt: skip
+    with tqdm(
+        total=sum(i.file_size for i in todo),
+        unit="B",
+        unit_scale=True,
+        unit_divisor=1024,
+        desc=f"{len(todo)} members",
+        disable=not progress or not todo,
+        leave=False,
+    ) as bar:
         for info in chosen:
             dest = folder / info.filename
             if info not in todo:
