@@ -97,3 +97,10 @@ def interrupt_child(code: str, after_s: float, watchdog_s: float = 30.0) -> tupl
         if proc.poll() is None:
             proc.kill()
     return rc, line, elapsed
+
+
+@pytest.fixture(autouse=True)
+def _own_data_home(tmp_path_factory, monkeypatch):
+    """No test reads or writes the user's data home (dataset=3dmatch|3dlomatch|kitti look there)."""
+    monkeypatch.setenv("FASTMAC_DATA", str(tmp_path_factory.getbasetemp() / "empty-data-home"))
+    monkeypatch.delenv("FASTMAC_DATA_SOURCES", raising=False)

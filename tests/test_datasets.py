@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from fastmac_exp.data.benchmarks import Kitti, ThreeDLoMatch, ThreeDMatch
 from fastmac_exp.datasets.fragments import FCGF_EXCLUDED, Fragments3DMatch, KittiRaw, fcgf_pairs
 from fastmac_exp.datasets.mac_layout import (
     SCENES_3DLOMATCH,
@@ -534,9 +535,13 @@ def test_precomputed_descriptor():
 @pytest.mark.parametrize(
     "config, cls, extra",
     [
-        ("3dmatch", ThreeDMatchMAC, {"descriptor": "fcgf", "scenes": None, "resolution": None}),
-        ("3dlomatch", ThreeDLoMatchMAC, {"descriptor": "fcgf"}),
-        ("kitti", KittiMAC, {"descriptor": "fcgf"}),
+        (
+            "3dmatch",
+            ThreeDMatch,
+            {"descriptor": "fcgf", "scenes": None, "resolution": None, "front_end": "auto"},
+        ),
+        ("3dlomatch", ThreeDLoMatch, {"descriptor": "fcgf", "front_end": "auto"}),
+        ("kitti", Kitti, {"descriptor": "fcgf", "front_end": "auto"}),
         ("fragments_3dmatch", Fragments3DMatch, {"family": "3dmatch", "gt_root": None}),
         ("kitti_raw", KittiRaw, {"pairs": None, "sequences": [8, 9, 10], "min_distance": 10.0}),
         ("pairs", UserPairs, {"source": None, "target": None, "gt": None, "family": "3dmatch"}),
@@ -568,9 +573,5 @@ def test_precomputed_config_and_run_config_error():
         )
     from fastmac_exp.run.experiment import Components
 
-    parts = Components(cfg)  # the experiment's own builder: every node instantiated untouched
-    ds = parts.dataset
-    assert ds.descriptor == "fcgf" and parts.descriptor.graph_key == "fcgf"
-    assert isinstance(parts.descriptor, PrecomputedDescriptor)
-    with pytest.raises(InputError, match=r"dataset\.root is not set(.|\n)*dataload_fcgf\.txt"):
-        ds.names()
+    with pytest.raises(InputError, match=r"needs MAC's released fcgf correspondences(.|\n)*data add NAME"):
+        Components(cfg)  # the experiment's own builder: an empty data home has no MAC correspondences

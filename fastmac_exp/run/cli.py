@@ -299,7 +299,12 @@ def check_output_dir(argv: list[str]) -> str | None:
 
 
 def run() -> None:
-    """The entry point: our checks first (they exit 2 with a message), then the Hydra app."""
+    """The entry point: `data ...` (fastmac_exp.data.cli), else our checks first (they exit 2 with a
+    message), then the Hydra app."""
+    if sys.argv[1:2] == ["data"]:
+        from fastmac_exp.data.cli import main as data_main
+
+        sys.exit(data_main(sys.argv[2:]))
     hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
     if not hint and {"-m", "--multirun"} & set(sys.argv[1:]):
         from fastmac_exp.run.sweep_check import check_members

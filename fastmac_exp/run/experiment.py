@@ -45,6 +45,9 @@ class Components:
         self.limit = cfg.get("limit")
         self.dataset = instantiate(cfg.dataset)
         self.descriptor = instantiate(cfg.descriptor)
+        front_end_for = getattr(self.dataset, "front_end_for", None)  # dataset=3dmatch|3dlomatch|kitti
+        if front_end_for is not None:
+            self.descriptor = front_end_for(self.descriptor)  # what the data hold picks the front end
         self.sampler = instantiate(cfg.sampler)
         self.backend = instantiate(cfg.backend)
         self.cfg = cfg
@@ -60,6 +63,8 @@ class Components:
             "frame": "pair-centred",  # entries hold what run_pair describes: the pair moved to its centre
             "seed": int(cfg.seed),
         }
+        if getattr(self.dataset, "chosen", None):  # the data home's folder and the front end it picked
+            self._cache_parts["data"] = self.dataset.chosen
         self.labels = {  # the results rows' labels: what each part calls itself
             group: str(getattr(part, "name", group))
             for group, part in (("dataset", self.dataset), ("descriptor", self.descriptor),
