@@ -26,3 +26,17 @@ def candidates(value: str | os.PathLike) -> list[Path]:
 def find_file(value: str | os.PathLike) -> Path | None:
     """The first existing file among `candidates(value)`, else None."""
     return next((c for c in candidates(value) if c.is_file()), None)
+
+
+HOME_ENV = "FASTMAC_DATA"
+
+
+def data_home() -> Path:
+    """Where the user's data lives (fetched benchmarks, converted models): $FASTMAC_DATA, else the
+    platform's user data directory of fastmac-exp (platformdirs)."""
+    given = os.environ.get(HOME_ENV)
+    if given:
+        return Path(given).expanduser()
+    import platformdirs
+
+    return Path(platformdirs.user_data_dir("fastmac-exp", appauthor=False))

@@ -10,19 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import platformdirs
-
 from fastmac_exp.atomic import temp_name
+from fastmac_exp.resources import HOME_ENV, data_home  # noqa: F401 - the data home's one definition
 
-HOME_ENV = "FASTMAC_DATA"
 MANIFEST = "manifest.json"
-
-
-def data_home() -> Path:
-    given = os.environ.get(HOME_ENV)
-    if given:
-        return Path(given).expanduser()
-    return Path(platformdirs.user_data_dir("fastmac-exp", appauthor=False))
 
 
 def dataset_dir(name: str, home: Path | None = None) -> Path:

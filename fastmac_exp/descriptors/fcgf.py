@@ -27,12 +27,12 @@ from fastmac_exp.descriptors.keypoints import clean_points, require_keypoints
 from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
 from fastmac_exp.descriptors.onnx_descriptor import open_session
 from fastmac_exp.errors import InputError
+from fastmac_exp.resources import data_home
 from fastmac_exp.types import Correspondences, Pair
 
 log = logging.getLogger(__name__)
 
 ENV_CHECKPOINT = "FCGF_CHECKPOINT"
-ENV_DATA = "FASTMAC_DATA"
 CONVERTER_VERSION = 1  # bump when the ONNX graph changes: cached models of another version are rebuilt
 NO_CHECKPOINT = (
     "descriptor=fcgf needs one of FCGF's published checkpoints (a ResUNetBN2C .pth of "
@@ -40,16 +40,6 @@ NO_CHECKPOINT = (
     "descriptor.checkpoint=PATH or FCGF_CHECKPOINT=PATH (descriptor=fcgf_lite is the small model shipped "
     "here)"
 )
-
-
-def data_home() -> Path:
-    """Where converted models are kept: $FASTMAC_DATA, else the user data dir of fastmac-exp."""
-    env = os.environ.get(ENV_DATA)
-    if env:
-        return Path(env).expanduser()
-    import platformdirs
-
-    return Path(platformdirs.user_data_dir("fastmac-exp", appauthor=False))
 
 
 def cached_model_path(sha256: str) -> Path:
