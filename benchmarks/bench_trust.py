@@ -56,7 +56,11 @@ def kiss(pair) -> tuple[np.ndarray, float]:
 
     src, tgt = (np.ascontiguousarray(c, dtype=np.float64) for c in (pair.src_cloud, pair.tgt_cloud))
     t0 = time.perf_counter()
-    sol = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(pair.voxel_size)).estimate(src, tgt)
+    try:
+        sol = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(pair.voxel_size)).estimate(src, tgt)
+    except RuntimeError as exc:  # e.g. "Too small voxel size" on the object scans: no pose
+        print(f"  KISS-Matcher on {pair.name}: {exc}")
+        return np.full((4, 4), np.nan), (time.perf_counter() - t0) * 1e3
     ms = (time.perf_counter() - t0) * 1e3
     pose = kiss_matcher_pose(sol)
     return (np.full((4, 4), np.nan) if pose is None else pose), ms

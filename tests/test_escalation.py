@@ -58,8 +58,8 @@ def test_the_steps_are_ordered_by_cost_and_the_describing_ones_need_clouds():
     assert "mutual" not in other and "finer_voxel" not in other and "mac_fixed_resolution" in other
 
 
-def _scarce(n: int = 3000, inliers: int = 45, seed: int = 0):
-    """Correspondences with 1.5 % inliers under a known pose."""
+def _scarce(n: int = 3000, inliers: int = 90, seed: int = 0):
+    """Correspondences with 3 % inliers under a known pose."""
     rng = np.random.default_rng(seed)
     gt = np.eye(4)
     gt[:3, :3], gt[:3, 3] = random_rotation(rng), [0.4, -0.2, 0.3]
@@ -70,7 +70,7 @@ def _scarce(n: int = 3000, inliers: int = 45, seed: int = 0):
 
 
 def test_register_escalates_from_a_sampler_that_misses_the_inliers_to_mac_on_every_match():
-    """random@1 % keeps ~0.5 of the 45 inliers: no trusted pose; samples=auto is refused for the random
+    """random@1 % keeps ~1 of the 90 inliers: no trusted pose; samples=auto is refused for the random
     sampler (recorded, not raised); MAC on every correspondence finds the pose and trusts it."""
     corr, gt = _scarce()
     first = register(corr, sampler="random", ratio=0.01, escalate="off")
