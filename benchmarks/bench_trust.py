@@ -67,7 +67,9 @@ def kiss(pair) -> tuple[np.ndarray, float]:
 
 
 def ok(pose, pair) -> bool:
-    return bool(np.isfinite(pose).all() and pose_errors(pose, pair.gt, pair.re_thresh_deg, pair.te_thresh_m).success)
+    return bool(
+        np.isfinite(pose).all() and pose_errors(pose, pair.gt, pair.re_thresh_deg, pair.te_thresh_m).success
+    )
 
 
 def main() -> None:
@@ -88,7 +90,9 @@ def main() -> None:
             print("kiss-matcher is not installed: its column is skipped")
             use_kiss = False
     print(f"CPU: {cpu_model()}; load at start: {load()}")
-    cases = [c for c in all_cases(args.data, args.synthetic) if c.kind in args.kinds and c.pair.gt is not None]
+    cases = [
+        c for c in all_cases(args.data, args.synthetic) if c.kind in args.kinds and c.pair.gt is not None
+    ]
     # a warm-up call: the first call of a process pays imports (scipy.special, Hydra's config composition)
     p0 = cases[0].pair
     register(p0.src_cloud, p0.tgt_cloud, **rules(p0), escalate="off")
@@ -148,7 +152,9 @@ def report(rows: list[dict], use_kiss: bool) -> None:
         for s in r["steps"]:
             if s["ms"] > 0:
                 cost[s["step"]].append(s["ms"])
-    print("\n| step | pair-seeds whose pose it gave | of them registered and trusted | tried | median ms when tried |")
+    print(
+        "\n| step | pair-seeds whose pose it gave | of them registered and trusted | tried | median ms when tried |"
+    )
     print("|---|---:|---:|---:|---:|")
     for step in cost:
         print(f"| {step} | {by_step.get(step, 0)} | {reg_step.get(step, 0)} | {len(cost[step])} | "

@@ -79,7 +79,7 @@ def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
                         "descriptor": desc_name, "config": cfg, "seed": seed, "n": r["n_in"],
                         "inlier_ratio": r.get("inlier_ratio_in"), "k": r["pose_inliers"],
                         "clique": r["clique_size"], "lam": res.chance_inliers, "rival_k": res.rival_inliers,
-                        "rival_lam": res.rival_chance, "decoy": res.decoy_inliers,
+                        "rival_lam": res.rival_chance, "decoy": res.decoy_count,
                         "success": r.get("success"), "re_deg": r.get("re_deg"), "te_cm": r.get("te_cm"),
                         "ms": (time.perf_counter() - t0) * 1e3, "t_decoy_ms": res.timings.get("decoy"),
                         "t_total_ms": res.timings.get("total"), "t_trust_ms": res.timings.get("trust"),

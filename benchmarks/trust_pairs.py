@@ -26,7 +26,6 @@ import numpy as np
 
 from fastmac_exp.datasets.user_pairs import SharedRealPairs
 from fastmac_exp.geometry.resolution import resolution_for
-from fastmac_exp.io import read_matrix
 from fastmac_exp.types import Pair
 
 KITTI_FRAMES = {0: "kitti_seq00_overlaptransformer/000000.bin", 5: "kitti_seq00_overlaptransformer/000005.bin",
@@ -127,7 +126,18 @@ def real_cases(root: str | Path) -> Iterator[Case]:
             elif e["target"] == path:
                 clouds[k] = p.tgt_cloud
     template = given["kitti00_95_to_94"]
-    done = {(95, 94), (199, 198), (198, 94), (5, 0), (15, 0), (94, 95), (198, 199), (94, 198), (0, 5), (0, 15)}
+    done = {
+        (95, 94),
+        (199, 198),
+        (198, 94),
+        (5, 0),
+        (15, 0),
+        (94, 95),
+        (198, 199),
+        (94, 198),
+        (0, 5),
+        (0, 15),
+    }
     for a in KITTI_FRAMES:
         for b in KITTI_FRAMES:
             if a == b or (a, b) in done:

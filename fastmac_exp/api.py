@@ -10,9 +10,9 @@ from omegaconf import OmegaConf
 
 from fastmac_exp.backends.base import Backend
 from fastmac_exp.descriptors.base import Descriptor
+from fastmac_exp.errors import FastMacError, InputError, RegistrationFailed
 from fastmac_exp.escalation import DEFAULT_BUDGET_S, ESCALATE_CHOICES, Step, available_steps
 from fastmac_exp.escalation import escalate as escalate_steps
-from fastmac_exp.errors import FastMacError, InputError, RegistrationFailed
 from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
 from fastmac_exp.geometry.offset import moved_pair, pair_offset, result_to_original
@@ -220,7 +220,9 @@ def _register_once(
         graph_key = desc.graph_key
         # georeferenced clouds: moved once to a frame at the pair's centre, the pose mapped back on exit
         offset = pair_offset(pair)
-        key = f"{OmegaConf.to_yaml(cfg.descriptor) if isinstance(descriptor, str) else id(desc)}|{voxel}|{seed}"
+        key = (
+            f"{OmegaConf.to_yaml(cfg.descriptor) if isinstance(descriptor, str) else id(desc)}|{voxel}|{seed}"
+        )
         if key in described:
             corr = described[key]
         else:

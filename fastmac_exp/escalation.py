@@ -35,11 +35,17 @@ STEPS: tuple[Step, ...] = (
     Step("first"),
     Step("samples_auto", {"samples": "auto"}),
     Step("mac_all", {"sampler": "none", "samples": None}),
-    Step("mac_fixed_resolution", {"sampler": "none", "samples": None, "resolution": "fixed"}, clouds_only=True),
+    Step(
+        "mac_fixed_resolution", {"sampler": "none", "samples": None, "resolution": "fixed"}, clouds_only=True
+    ),
     Step("mutual", {"sampler": "none", "samples": None, "mutual": True}, clouds_only=True),
     Step("finer_voxel", {"sampler": "none", "samples": None, "voxel_scale": 0.75}, clouds_only=True),
-    Step("learned", {"descriptor": "buffer", "samples": "auto", "progress": False}, clouds_only=True,
-         needs="onnxruntime"),
+    Step(
+        "learned",
+        {"descriptor": "buffer", "samples": "auto", "progress": False},
+        clouds_only=True,
+        needs="onnxruntime",
+    ),
 )
 
 

@@ -151,7 +151,7 @@ class RegistrationResult:
     hypothesis_scores: np.ndarray | None = None
     # the trust check's evidence beyond chance (geometry.trust.Trust): the decoy run's and the best
     # distinct rival's counts (NaN where not measured)
-    decoy_inliers: float = float("nan")
+    decoy_count: float = float("nan")
     rival_inliers: float = float("nan")
     rival_chance: float = float("nan")
     error: str = ""  # register(): why no pose could be found ("" = a pose); then pose is all NaN

@@ -101,10 +101,10 @@ def test_bad_escalation_arguments_are_refused():
 
 def test_the_default_descriptors_options_need_no_name_and_clouds_escalate_past_their_graph():
     """register(src, tgt, mutual=True): FPFH's option without descriptor="fpfh" (it was refused)."""
-    from tests.test_cli import _blob_pair
-
     import tempfile
     from pathlib import Path
+
+    from tests.test_cli import _blob_pair
 
     with tempfile.TemporaryDirectory() as d:
         s, t, gt = _blob_pair(Path(d))

@@ -10,9 +10,9 @@ from fastmac_exp.backends.cpp import CppBackend
 from fastmac_exp.backends.python_mac import PythonBackend
 from fastmac_exp.geometry.transforms import random_rotation
 from fastmac_exp.geometry.trust import (
-    ChanceCounter,
     RIVAL_MARGIN,
     STRUCTURE_RATE,
+    ChanceCounter,
     decide,
     distinct,
     explained,
@@ -77,7 +77,11 @@ def test_rival_support_counts_what_the_rival_explains_beyond_the_chosen_pose():
     src, tgt, a, b = _two_poses(60, 25, 400)
     chance = ChanceCounter(src, tgt, 0.1)
     near_a = a.copy()
-    near_a[:3, 3] += [0.0, 0.0, 0.35]  # beyond 0.3 m from A: distinct, but it explains A's matches, not others
+    near_a[:3, 3] += [
+        0.0,
+        0.0,
+        0.35,
+    ]  # beyond 0.3 m from A: distinct, but it explains A's matches, not others
     poses = np.stack([a, near_a, b])
     k, lam = rival_support(poses, np.array([60.0, 50.0, 25.0]), a, src, tgt, 0.1, 15.0, 0.3, chance)
     assert k == explained(src[60:], tgt[60:], b, 0.1) and 25 <= k <= 27  # B's own, perhaps a chance one
@@ -105,7 +109,7 @@ def test_an_ambiguous_pose_is_not_trusted_and_a_clear_one_is(backend):
     assert res.inliers >= 70 and res.trusted
     # its clique holds every inlier: with the clique standing in for the search's pick (decoy off) the
     # pose explains nothing beyond it; the decoy measures what the search finds by chance instead
-    assert len(res.clique) >= 60 and np.isfinite(res.decoy_inliers) and res.decoy_inliers < 15
+    assert len(res.clique) >= 60 and np.isfinite(res.decoy_count) and res.decoy_count < 15
     off, _ = register_correspondences(Correspondences(src, tgt), params, NoSampler(), backend(), decoy="off")
     assert not off.trusted
 
@@ -126,10 +130,10 @@ def test_the_decoy_runs_where_asked_and_measures_a_small_excess_on_random_matche
     src, tgt, _, _ = _two_poses(80, 0, 800)
     corr = Correspondences(src, tgt)
     res, _ = register_correspondences(corr, params, NoSampler(), CppBackend(), decoy="on")
-    assert np.isfinite(res.decoy_inliers) and res.decoy_inliers < 20 and res.trusted
+    assert np.isfinite(res.decoy_count) and res.decoy_count < 20 and res.trusted
     assert "decoy" in res.timings
     off, _ = register_correspondences(corr, params, NoSampler(), CppBackend(), decoy="off")
-    assert np.isnan(off.decoy_inliers) and "decoy" not in off.timings
+    assert np.isnan(off.decoy_count) and "decoy" not in off.timings
     np.testing.assert_array_equal(off.pose, res.pose)  # the decoy draws from its own stream
     with pytest.raises(Exception, match="decoy must be one of"):
         register_correspondences(corr, params, NoSampler(), CppBackend(), decoy="maybe")

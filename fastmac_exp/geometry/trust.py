@@ -89,7 +89,9 @@ def explained(src: np.ndarray, tgt: np.ndarray, pose: np.ndarray, threshold: flo
     return int((residual < threshold).sum())
 
 
-def distinct(poses: np.ndarray, pose: np.ndarray, centre: np.ndarray, re_deg: float, te_m: float) -> np.ndarray:
+def distinct(
+    poses: np.ndarray, pose: np.ndarray, centre: np.ndarray, re_deg: float, te_m: float
+) -> np.ndarray:
     """Which of `poses` (H, 4, 4) differ from `pose` by more than re_deg in rotation or te_m in where they
     put `centre` (the source's centre: a translation difference that does not depend on the origin)."""
     if len(poses) == 0:

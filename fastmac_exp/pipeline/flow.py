@@ -9,6 +9,7 @@ is in fastmac_exp/api.py.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -17,9 +18,9 @@ import numpy as np
 from fastmac_exp.backends.base import Backend
 from fastmac_exp.descriptors.base import Descriptor
 from fastmac_exp.errors import InputError, RegistrationFailed
+from fastmac_exp.families import family as family_record
 from fastmac_exp.geometry.metrics import pose_errors
 from fastmac_exp.geometry.offset import common_offset, moved_pair, pair_offset, result_to_original, translate
-from fastmac_exp.families import family as family_record
 from fastmac_exp.geometry.trust import ChanceCounter, assess, explained, rival_support
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.pipeline.cache import CorrespondenceCache
@@ -93,8 +94,17 @@ def run_pair(
         inlier_ratio_in=corr.inlier_ratio,
     )
     result, sample = register_correspondences(
-        corr, params, sampler, backend, ratio, pair.family, rng, sample_graph=sample_graph, samples=samples,
-        decoy=decoy, distinct=(pair.re_thresh_deg, pair.te_thresh_m),
+        corr,
+        params,
+        sampler,
+        backend,
+        ratio,
+        pair.family,
+        rng,
+        sample_graph=sample_graph,
+        samples=samples,
+        decoy=decoy,
+        distinct=(pair.re_thresh_deg, pair.te_thresh_m),
     )
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
@@ -114,7 +124,7 @@ def run_pair(
         confidence=result.confidence,
         chance_inliers=result.chance_inliers,
         rival_inliers=result.rival_inliers,
-        decoy_excess=result.decoy_inliers,
+        decoy_count=result.decoy_count,
         score=result.score,
         n_edges=result.n_edges,
         n_cliques=result.n_cliques,
@@ -206,8 +216,9 @@ def register_correspondences(
     instead of floor(N * ratio); "auto" (or ratio="auto"): the keep sized from the scores.
     decoy: the trust check's decoy run (the same sampler and backend on the correspondences with their
     targets permuted; geometry.trust): "on", "off", or "auto" (only where the pose is not trusted with
-    its own clique standing in for what the search finds by chance: a tight clique of most inliers). distinct: (degrees, metres) beyond which a hypothesis is a rival of the chosen
-    pose (None: the family's success thresholds).
+    its own clique standing in for what the search finds by chance: a tight clique of most inliers).
+    distinct: (degrees, metres) beyond which a hypothesis is a rival of the chosen pose (None: the
+    family's success thresholds).
     """
     if decoy not in DECOY_CHOICES:
         raise InputError(f"decoy must be one of {DECOY_CHOICES}, got {decoy!r}")
@@ -221,7 +232,30 @@ def register_correspondences(
     result = backend.register(work.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
-    t1 = time.perf_counter()
+    trust_ms, decoy_ms = judge(result, work, params, family, distinct, decoy,
+                               lambda chance: decoy_count(work, params, sampler, backend, ratio, family,
+                                                          rng.spawn(1)[0], sample_graph, samples, chance))  # fmt: skip
+    result_to_original(result, offset)
+    result.kept = kept
+    result.clique = kept[result.clique]
+    result.scores = sample.scores
+    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "total": total,
+                      "trust": trust_ms, **({"decoy": decoy_ms} if decoy_ms is not None else {})}  # fmt: skip
+    return result, sample
+
+
+def judge(
+    result: RegistrationResult,
+    work: Correspondences,
+    params: MacParams,
+    family: str,
+    distinct: tuple[float, float] | None,
+    decoy: str,
+    run_decoy: Callable[[ChanceCounter], float],
+) -> tuple[float, float | None]:
+    """Set the result's inliers and trust (geometry.trust) on the correspondences it was found on;
+    (trust ms, decoy ms or None where the decoy did not run)."""
+    t0 = time.perf_counter()
     tau = params.inlier_threshold
     result.inliers = pose_inliers(work, result.pose, tau)
     chance = ChanceCounter(work.src, work.tgt, tau)
@@ -229,33 +263,19 @@ def register_correspondences(
     re_deg, te_m = distinct if distinct is not None else (fam.re_thresh_deg, fam.te_thresh_m)
     rival = rival_support(result.hypothesis_poses, result.hypothesis_scores, result.pose, work.src, work.tgt,
                           tau, re_deg, te_m, chance)  # fmt: skip
-    decoy_ms = 0.0
-    excess = None
-    verdict = None
-    if decoy != "on":  # first with the pose's own clique for the search's pick
-        verdict = assess(work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique),
-                         rival=rival, chance=chance)  # fmt: skip
-    if decoy == "on" or (decoy == "auto" and not verdict.trusted):
-        # spawned only now: the sampler's draws (and its own spawns) are those of a run without the decoy
-        (decoy_rng,) = rng.spawn(1)
-        t2 = time.perf_counter()
-        excess = decoy_count(work, params, sampler, backend, ratio, family, decoy_rng, sample_graph,
-                             samples, chance)  # fmt: skip
-        decoy_ms = (time.perf_counter() - t2) * 1e3
-        verdict = assess(work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique),
-                         rival=rival, decoy_count=excess, chance=chance)  # fmt: skip
+    args = (work.src, work.tgt, result.pose, tau, result.inliers, len(result.clique))
+    verdict = assess(*args, rival=rival, chance=chance) if decoy != "on" else None  # the clique first
+    decoy_ms = count = None
+    if verdict is None or (decoy == "auto" and not verdict.trusted):
+        t1 = time.perf_counter()
+        count = run_decoy(chance)  # rng spawned only now: the sampler's own spawns are as without it
+        decoy_ms = (time.perf_counter() - t1) * 1e3
+        verdict = assess(*args, rival=rival, decoy_count=count, chance=chance)
     result.trusted, result.confidence = verdict.trusted, verdict.confidence
     result.chance_inliers = verdict.chance_inliers
     result.rival_inliers, result.rival_chance = verdict.rival_inliers, verdict.rival_chance
-    result.decoy_inliers = float("nan") if excess is None else excess
-    trust_ms = (time.perf_counter() - t1) * 1e3 - decoy_ms
-    result_to_original(result, offset)
-    result.kept = kept
-    result.clique = kept[result.clique]
-    result.scores = sample.scores
-    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "total": total,
-                      "trust": trust_ms, **({"decoy": decoy_ms} if excess is not None else {})}  # fmt: skip
-    return result, sample
+    result.decoy_count = float("nan") if count is None else count
+    return (time.perf_counter() - t0) * 1e3 - (decoy_ms or 0.0), decoy_ms
 
 
 def decoy_count(

@@ -61,7 +61,7 @@ class PairRow:
     confidence: Any = UNSET  # ... 1 - its false-accept chance, what `trusted` thresholds
     chance_inliers: Any = UNSET  # ... the evidence: what chance explains under the pose (lambda)
     rival_inliers: Any = UNSET  # ... what the best distinct hypothesis explains (NaN: none)
-    decoy_excess: Any = UNSET  # ... what the search explains beyond chance on permuted matches (NaN: not run)
+    decoy_count: Any = UNSET  # ... what the search explains beyond chance on permuted matches (NaN: not run)
     score: Any = UNSET
     n_edges: Any = UNSET
     n_cliques: Any = UNSET

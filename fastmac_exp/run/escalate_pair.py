@@ -12,7 +12,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -60,7 +61,9 @@ class StepParts:
             pair = dataclasses.replace(pair, voxel_size=pair.voxel_size * ch["voxel_scale"])
             alike = False
         if ch.get("descriptor"):
-            node = OmegaConf.merge(compose_run({"descriptor": ch["descriptor"]}).descriptor, {"progress": False})
+            node = OmegaConf.merge(
+                compose_run({"descriptor": ch["descriptor"]}).descriptor, {"progress": False}
+            )
             descriptor, alike = self._part(ch["descriptor"], lambda: instantiate(node)), False
         return pair, descriptor, sampler, samples, alike
 

@@ -25,7 +25,6 @@ from fastmac_exp.geometry.trust import TRUST_LEVEL
 from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.pipeline.row import PairRow
-from fastmac_exp.types import Pair
 from fastmac_exp.resources import find_file
 from fastmac_exp.run.checks import check_run_keys, run_escalates, run_ratio, run_samples
 from fastmac_exp.run.escalate_pair import StepParts, escalate_pair
@@ -33,6 +32,7 @@ from fastmac_exp.run.results import ResultsLog, pose_file, pose_matrix, write_po
 from fastmac_exp.run.resume import CONFIG_NAME, RESUMED_NAME, check_is_run, check_same_experiment, is_auto
 from fastmac_exp.run.runlock import RunLock
 from fastmac_exp.trackers.redact import redact
+from fastmac_exp.types import Pair
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,9 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
         row.set(scene=pair.scene, family=pair.family)
         rng_seed = (cfg.seed, index)
 
-        def run_step(p: Pair, descriptor: Any, sampler: Any, samples: Any, alike: bool, r: PairRow) -> PairOutcome:
+        def run_step(
+            p: Pair, descriptor: Any, sampler: Any, samples: Any, alike: bool, r: PairRow
+        ) -> PairOutcome:
             return run_pair(
                 p,
                 descriptor,
@@ -139,7 +141,9 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
         return PairOutcome(row=row.to_dict())
 
 
-def escalate_run_pair(comp: Components, first: PairOutcome, pair: Pair, run_step: Any, row: PairRow) -> PairOutcome:
+def escalate_run_pair(
+    comp: Components, first: PairOutcome, pair: Pair, run_step: Any, row: PairRow
+) -> PairOutcome:
     """escalate=auto: a pose that is not trusted runs the wider steps (run/escalate_pair.py); a step that
     fails is recorded as a failed step, never as the pair's failure."""
     if first.row.get("trusted"):
