@@ -112,3 +112,33 @@ def test_the_default_descriptors_options_need_no_name_and_clouds_escalate_past_t
     res = register(src, tgt, mutual=True, escalate="off")
     assert res.ok and res.trusted
     assert np.abs(res.pose - gt).max() < 0.1
+
+
+def test_run_py_escalates_an_untrusted_pair_and_its_row_says_how(tmp_path):
+    """run.py escalate=auto on two unrelated clouds: no step is trusted; the row names the step whose pose
+    it kept and lists every step, tried or stopped by the budget (which steps fit in it depends on the
+    machine, so only the set is checked); escalate=off (the default) keeps the first try alone."""
+    import json
+
+    import pandas as pd
+
+    from tests.test_cli import run
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "a.npy", rng.uniform(0, 3, (20000, 3)))
+    np.save(tmp_path / "b.npy", rng.uniform(0, 3, (20000, 3)))
+    keys = ("dataset=pairs", f"dataset.source={tmp_path / 'a.npy'}", f"dataset.target={tmp_path / 'b.npy'}")
+    p = run(*keys, "escalate=auto", "escalate_budget_s=1", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    row = pd.read_csv(tmp_path / "run" / "results.csv").iloc[0]
+    assert not bool(row["trusted"])
+    steps = json.loads(row["escalation"])
+    names = [s["step"] for s in steps]
+    assert names[0] == "first" and set(names) == {s.name for s in available_steps(clouds=True, fpfh=True)}
+    assert row["escalation_step"] in names and row["t_escalation_ms"] > 0
+    assert all(s["ms"] > 0 or "budget" in s["error"] for s in steps)
+    p = run(*keys, tmp=tmp_path / "off")
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "escalation_step" not in pd.read_csv(tmp_path / "off" / "run" / "results.csv").columns
+    p = run(*keys, "escalate=sometimes", tmp=tmp_path / "bad")
+    assert p.returncode == 2 and "escalate must be auto or off" in p.stdout + p.stderr
