@@ -140,7 +140,7 @@ class RegistrationResult:
     # what a user without GT can judge the pose by: the input correspondences the pose maps within the
     # inlier threshold (a right pose has many more than the clique; unrelated clouds about the clique's)
     inliers: int = 0
-    # GT-free: whether the pose explains more correspondences than chance would (geometry.trust), and
+    # GT-free: whether the pose explains clearly more correspondences than a wrong pose would (geometry.trust), and
     # the confidence that is thresholded (1 - the false-accept chance; docs/trust.md)
     trusted: bool = False
     confidence: float = 0.0

@@ -464,7 +464,8 @@ def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[
 def untrusted_line(row: dict[str, Any]) -> str:
     return (
         f"UNTRUSTED POSE for {row.get('pair')}: it explains {row.get('pose_inliers')} of {row.get('n_in')} "
-        f"correspondences, no more than chance would (confidence {float(row.get('confidence') or 0):.3f} < "
+        f"correspondences, not clearly more than a wrong pose would (chance, the search's own pick, structure or "
+        f"a rival pose; confidence {float(row.get('confidence') or 0):.3f} < "
         f"{TRUST_LEVEL}; docs/trust.md): do not use it"
     )
 
@@ -544,7 +545,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     bad = s.get("untrusted_pairs") or []
     if bad:
         lines.append(
-            f"WARNING: {len(bad)} UNTRUSTED pose(s), no more correspondences than chance would explain "
+            f"WARNING: {len(bad)} UNTRUSTED pose(s), not clearly more correspondences than a wrong pose would explain "
             f"(docs/trust.md): {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}"
         )
     for reason, info in (s.get("failures") or {}).items():
