@@ -48,6 +48,49 @@ def test_a_missing_input_file_is_refused_before_the_run_starts(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_empty_and_headless_input_files_are_refused_before_the_run_starts(tmp_path):
+    """Issue 49 item 4: an empty file (or a .ply that is no PLY) is a config error like a missing one: exit
+    2 and its path before a run directory exists, not a failed pair in a run directory."""
+    (b,) = _not_clouds(tmp_path, "b.xyz")
+    empty = tmp_path / "empty.ply"
+    empty.write_bytes(b"")
+    p = run("dataset=pairs", f"dataset.source={empty}", f"dataset.target={b}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert f"dataset.source: an empty file (0 bytes): {empty}" in out and "Traceback" not in out
+    assert not (tmp_path / "run").exists()
+    headless = tmp_path / "xyz.ply"
+    headless.write_text("0 0 0\n1 1 1\n")
+    gt_empty = tmp_path / "gt.txt"
+    gt_empty.write_text("")
+    p = run("dataset=pairs", f"dataset.source={b}", f"dataset.target={headless}", tmp=tmp_path)
+    assert (
+        p.returncode == 2
+        and "dataset.target: not a PLY file (it does not start with 'ply'" in p.stdout + p.stderr
+    )
+    p = run(
+        "dataset=pairs", f"dataset.source={b}", f"dataset.target={b}", f"dataset.gt={gt_empty}", tmp=tmp_path
+    )
+    assert p.returncode == 2 and f"dataset.gt: an empty file (0 bytes): {gt_empty}" in p.stdout + p.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_dropped_points_are_said_on_the_console_and_in_run_log(tmp_path):
+    """Issue 49 item 4: points at the origin and NaN rows are dropped with a line saying how many of what
+    was read, and why (a 3-point cloud whose origin point vanished said '2 point(s) ... (from 2)')."""
+    src, tgt, gt = _blob_pair(tmp_path)
+    pts = np.load(src)
+    np.save(src, np.r_[pts, np.zeros((3, 3)), np.full((2, 3), np.nan)])
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    said = (
+        f"source cloud {src}: read {len(pts) + 5} points, dropped 5: 2 not finite (NaN/inf); 3 exactly at "
+        "(0, 0, 0), taken for invalid LiDAR returns (dataset.drop_zeros=false keeps them)"
+    )
+    assert said in p.stdout + p.stderr and said in (tmp_path / "run" / "run.log").read_text()
+    assert f"target cloud {tgt}: read" not in p.stdout + p.stderr  # nothing dropped, nothing said
+
+
 def test_an_unknown_option_value_is_refused_before_the_run_starts(tmp_path):
     p = run("mac.search=bnbb", tmp=tmp_path)
     out = p.stdout + p.stderr

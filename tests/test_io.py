@@ -324,3 +324,23 @@ def test_kitti_errors(tmp_path):
     (tmp_path / "calib2.txt").write_text("garbage line\n")
     with pytest.raises(InputError, match=r"calib2\.txt, line 1"):
         bf.read_kitti_calib(tmp_path / "calib2.txt")
+
+
+def test_register_says_what_it_dropped(caplog):
+    """Issue 49 item 4: register() drops NaN/inf rows and points at the origin with a warning that counts
+    them (it dropped them without a word, even at DEBUG)."""
+    import fastmac_exp
+
+    rng = np.random.default_rng(0)
+    tgt = rng.uniform(0, 2, (3000, 3))
+    src = tgt.copy()
+    src[:4] = np.nan
+    src[4] = np.inf
+    src[5:7] = 0.0
+    with caplog.at_level("WARNING", logger="fastmac_exp.io"):
+        fastmac_exp.register(src, tgt, backend="python")
+    (said,) = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert said == (
+        "source cloud: read 3000 points, dropped 7: 5 not finite (NaN/inf); 2 exactly at (0, 0, 0), "
+        "taken for invalid LiDAR returns"
+    )

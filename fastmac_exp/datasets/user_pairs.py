@@ -17,7 +17,7 @@ import numpy as np
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
 from fastmac_exp.geometry.resolution import resolution_for
-from fastmac_exp.io import clean_cloud, read_matrix, read_points
+from fastmac_exp.io import check_input_file, clean_cloud, read_matrix, read_points
 from fastmac_exp.types import Pair
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package
@@ -45,9 +45,12 @@ OBJECT_RULES = {
 }
 
 
-def _load(path: Path, what: str, drop_zeros: bool) -> tuple[np.ndarray, int]:
+def _load(path: Path, what: str, drop_zeros: bool, keep_zeros: str = "") -> tuple[np.ndarray, int]:
     """(cleaned points, number of points dropped)."""
-    return clean_cloud(read_points(path), f"{what} {path}", drop_zeros)
+    return clean_cloud(read_points(path), f"{what} {path}", drop_zeros, keep_zeros)
+
+
+KEEP_ZEROS = "dataset.drop_zeros=false keeps them"
 
 
 def _as_list(v, what: str) -> list:
@@ -126,12 +129,12 @@ class UserPairs:
         return [n for n, *_ in self._index()]
 
     def check_inputs(self) -> None:
-        """Every named file exists (a run checks this before it starts, not pair by pair)."""
+        """Every named file exists, is readable and not empty (a run checks this before it starts, not pair
+        by pair)."""
         for _, *paths in self._index():
             for key, path in zip(("source", "target", "gt"), paths):
-                if path is not None and (not path.exists() or path.is_dir()):
-                    what = "a directory, not a file" if path.exists() else "no such file"
-                    raise InputError(f"dataset.{key}: {what}: {path.resolve()}")
+                if path is not None and (problem := check_input_file(path)):
+                    raise InputError(f"dataset.{key}: {problem}: {path.resolve()}")
 
     def __len__(self) -> int:
         return len(self._index())
@@ -141,8 +144,8 @@ class UserPairs:
         if not 0 <= index < len(entries):
             raise IndexError(f"pairs: pair index {index} out of range (0..{len(entries) - 1})")
         name, s, t, g = entries[index]
-        src, ds = _load(s, "source cloud", self.drop_zeros)
-        tgt, dt = _load(t, "target cloud", self.drop_zeros)
+        src, ds = _load(s, "source cloud", self.drop_zeros, KEEP_ZEROS)
+        tgt, dt = _load(t, "target cloud", self.drop_zeros, KEEP_ZEROS)
         gt = read_matrix(g) if g is not None else None
         voxel = self.voxel_size if self.voxel_size is not None else family(self.family).voxel_size
         return Pair(
