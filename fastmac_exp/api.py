@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -18,6 +17,7 @@ from fastmac_exp.geometry.resolution import resolution_for
 from fastmac_exp.options import apply_options, compose_run, instantiate_part
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
+from fastmac_exp.pipeline.stopwatch import Stopwatch, registration_parts
 from fastmac_exp.run.checks import check_devices
 from fastmac_exp.samplers import Sampler
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
@@ -81,6 +81,7 @@ def register(
     >>> result.pose  # 4x4, maps source into target
     >>> register(corr, samples=5000, scores="exact", backend="turboreg", num_pivot=1000)
     """
+    watch = Stopwatch()  # every stage, back to back: result.timings adds up to end_to_end
     picks: dict[str, str] = {}
     if isinstance(sampler, str):
         picks["sampler"] = sampler
@@ -100,9 +101,9 @@ def register(
     graph_overrides = OmegaConf.to_container(cfg.graph, resolve=True)
     mac_overrides = OmegaConf.to_container(cfg.mac, resolve=True)
     graph_key = "fpfh"
-    describe_ms = 0.0
     offset = np.zeros(3)  # correspondences are moved by register_correspondences itself
     resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
+    watch.lap("setup")
     if isinstance(source, Correspondences):
         corr = source
     else:
@@ -117,7 +118,9 @@ def register(
             )
         src = clean_cloud(_points(source, "source"), "source cloud")[0]
         tgt = clean_cloud(_points(target, "target"), "target cloud")[0]
+        watch.lap("clean")
         resolution = resolution_for(family, src, tgt)
+        watch.lap("resolution")
         pair = Pair(
             name="register",
             family=family,
@@ -134,9 +137,8 @@ def register(
         graph_key = descriptor.graph_key
         # georeferenced clouds: moved once to a frame at the pair's centre, the pose mapped back on exit
         offset = pair_offset(pair)
-        t0 = time.perf_counter()
         corr = descriptor(moved_pair(pair, offset), rng)
-        describe_ms = (time.perf_counter() - t0) * 1e3
+        watch.lap("describe")
     if len(corr) < 3:  # else the sampler's advice would be a ratio above 1
         raise InputError(f"{len(corr)} correspondence(s): a clique, and a pose, needs at least 3")
     params = mac_params_for(family, graph_key, resolution, graph_overrides, mac_overrides)
@@ -159,7 +161,8 @@ def register(
         return RegistrationResult(
             pose=nan, pose_unrefined=nan.copy(), kept=empty, clique=empty, error=str(exc)
         )
-    result.timings["describe"] = describe_ms
+    watch.lap_in_parts(registration_parts(result.timings))
+    result.timings = watch.timings(result.timings["total"])
     return result_to_original(result, offset)
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
-from fastmac_exp.geometry.resolution import resolution_for
+from fastmac_exp.geometry.resolution import timed_resolution_for
 from fastmac_exp.io import check_input_file, clean_cloud, read_matrix, read_points
 from fastmac_exp.types import Pair
 
@@ -148,6 +148,8 @@ class UserPairs:
         tgt, dt = _load(t, "target cloud", self.drop_zeros, KEEP_ZEROS)
         gt = read_matrix(g) if g is not None else None
         voxel = self.voxel_size if self.voxel_size is not None else family(self.family).voxel_size
+        res, timed = (self.resolution, {}) if self.resolution is not None else timed_resolution_for(
+            self.family, src, tgt)  # fmt: skip
         return Pair(
             name=name,
             family=self.family,
@@ -155,10 +157,9 @@ class UserPairs:
             src_cloud=src,
             tgt_cloud=tgt,
             voxel_size=float(voxel),
-            resolution=(
-                resolution_for(self.family, src, tgt) if self.resolution is None else self.resolution
-            ),
+            resolution=res,
             meta={
+                **timed,
                 "source_file": str(s),
                 "target_file": str(t),
                 "gt_file": None if g is None else str(g),
@@ -271,8 +272,9 @@ class SharedRealPairs:
         tgt, dt = _load(root / e["target"], "target cloud", True)
         gt = read_matrix(root / e["gt"])
         rules = self.rules(e)
+        timed = {}
         if "resolution" not in rules:  # computed from the clouds where MAC computes it (indoor families)
-            rules["resolution"] = resolution_for(rules["family"], src, tgt)
+            rules["resolution"], timed = timed_resolution_for(rules["family"], src, tgt)
         return Pair(
             name=e["id"],
             gt=gt,
@@ -280,6 +282,7 @@ class SharedRealPairs:
             tgt_cloud=tgt,
             scene=e["category"],
             meta={
+                **timed,
                 "category": e["category"],
                 "dataset": e.get("dataset", ""),
                 "note": e.get("note", ""),
