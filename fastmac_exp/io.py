@@ -351,7 +351,10 @@ def check_input_file(path: Path) -> str | None:
 
 
 def load_cloud(path: str | Path, drop_zeros: bool = True) -> np.ndarray:
-    """`read_points` then `clean_cloud`: a finite, non-empty (N, 3) float64 cloud."""
+    """A point-cloud file as the CLI reads it (`fastmac_exp.load_cloud`): .ply / .pcd (Open3D), .npy (N, 3+),
+    KITTI .bin (float32 x y z reflectance), .xyz / .txt / .pts text (the first three columns); NaN/inf rows
+    and, with `drop_zeros`, points exactly at the origin are dropped with a warning that counts them.
+    Returns a finite, non-empty (N, 3) float64 array; a bad file raises InputError naming it."""
     return clean_cloud(read_points(path), str(path), drop_zeros)[0]
 
 

@@ -344,3 +344,24 @@ def test_register_says_what_it_dropped(caplog):
         "source cloud: read 3000 points, dropped 7: 5 not finite (NaN/inf); 2 exactly at (0, 0, 0), "
         "taken for invalid LiDAR returns"
     )
+
+
+def test_the_public_loader_reads_what_the_cli_reads_and_open3d_imports_after_the_package(tmp_path):
+    """Issue 49 item 5: fastmac_exp.load_cloud is public, and after `import fastmac_exp` a user's own
+    `import open3d` works on a machine without a system libusb (it failed: libusb-1.0.so.0)."""
+    import subprocess
+    import sys
+
+    import fastmac_exp
+
+    cloud = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+    np.save(tmp_path / "c.npy", cloud)
+    np.c_[cloud, np.ones(200)].astype("<f4").tofile(tmp_path / "c.bin")
+    np.savetxt(tmp_path / "c.txt", cloud, fmt="%.9f")
+    for name in ("c.npy", "c.txt"):
+        np.testing.assert_allclose(fastmac_exp.load_cloud(tmp_path / name), cloud, atol=1e-9)
+    np.testing.assert_allclose(fastmac_exp.load_cloud(tmp_path / "c.bin"), cloud, atol=1e-6)
+    assert "load_cloud" in fastmac_exp.__all__
+    code = "import fastmac_exp, open3d; print(open3d.geometry.PointCloud().is_empty())"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.strip() == "True", p.stderr[-2000:]

@@ -472,7 +472,6 @@ def format_summary(summary: dict[str, Any]) -> str:
     s = summary
     nan = float("nan")
     stages = [st for st in PAIR_STAGES if _finite(s.get(f"median_{st}_ms"))]  # those the pairs went through
-    end_to_end = s.get("median_end_to_end_ms")
     scored, unscored = s.get("scored", s.get("pairs")), s.get("unscored", 0)
     if scored:
         rr = f"RR: {100 * s.get('RR', nan):.1f}%" + (f" (of the {scored} pairs with GT)" if unscored else "")
