@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,6 +20,8 @@ from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
 from fastmac_exp.geometry.resolution import timed_resolution_for
 from fastmac_exp.io import check_input_file, clean_cloud, read_matrix, read_points
 from fastmac_exp.types import Pair
+
+log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package
 
@@ -64,11 +67,32 @@ def _as_list(v, what: str) -> list:
         raise InputError(f"{what} must be a path or a list of paths, got {v!r}") from None
 
 
+# Clouds wider than this (the larger bounding-box side of either) under the indoor rules get a warning: a
+# 3DMatch fragment is 3-6 m across, a KITTI scan ~100 m.
+OUTDOOR_EXTENT_M = 30.0
+
+
+def infer_family(src_file: Path, tgt_file: Path, src: np.ndarray, tgt: np.ndarray) -> tuple[str, str]:
+    """family=auto: (family, why, for the log line). KITTI .bin files are Velodyne scans: kitti; anything
+    else takes the indoor rules (3dmatch), and the reason says so, with a warning's word where the clouds
+    look like outdoor scans."""
+    if src_file.suffix.lower() == ".bin" or tgt_file.suffix.lower() == ".bin":
+        return "kitti", "the files are KITTI Velodyne .bin scans; dataset.family=3dmatch for the indoor rules"
+    extent = max(float(np.ptp(src, axis=0).max()), float(np.ptp(tgt, axis=0).max()))
+    if extent > OUTDOOR_EXTENT_M:
+        return "3dmatch", (
+            f"the indoor rules, but the clouds span {extent:.0f} m: outdoor scans? dataset.family=kitti "
+            "for the outdoor rules"
+        )
+    return "3dmatch", f"the clouds span {extent:.1f} m: indoor rules; dataset.family=kitti for outdoor scans"
+
+
 class UserPairs:
     """One pair (or several, given lists of equal length) of point-cloud files.
 
     `source`/`target`: paths (relative ones to the working directory); `gt`: a 4x4 file mapping source into
-    target, or None. `family` picks the thresholds ("3dmatch", "3dlomatch", "kitti"); `voxel_size=None`
+    target, or None. `family` picks the thresholds ("3dmatch", "3dlomatch", "kitti"; "auto", the default:
+    kitti for KITTI .bin files, else 3dmatch, said on the log with the reason); `voxel_size=None`
     takes the family's (0.05 m indoors, 0.3 m for KITTI). Points exactly at the origin (invalid LiDAR
     returns) and non-finite points are dropped unless `drop_zeros=False` (then only non-finite ones).
     """
@@ -80,7 +104,7 @@ class UserPairs:
         source: str | Path | Sequence[str | Path] | None = None,
         target: str | Path | Sequence[str | Path] | None = None,
         gt: str | Path | Sequence[str | Path | None] | None = None,
-        family: str = "3dmatch",
+        family: str = "auto",
         voxel_size: float | None = None,
         resolution: float | None = None,
         drop_zeros: bool = True,
@@ -97,7 +121,8 @@ class UserPairs:
     def _index(self) -> list[tuple[str, Path, Path, Path | None]]:
         if self._entries is not None:
             return self._entries
-        check_family(self.family)
+        if self.family != "auto":
+            check_family(self.family)
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise InputError(f"pairs: voxel_size must be positive or null, got {self.voxel_size}")
         src, tgt = _as_list(self.source, "source"), _as_list(self.target, "target")
@@ -147,12 +172,16 @@ class UserPairs:
         src, ds = _load(s, "source cloud", self.drop_zeros, KEEP_ZEROS)
         tgt, dt = _load(t, "target cloud", self.drop_zeros, KEEP_ZEROS)
         gt = read_matrix(g) if g is not None else None
-        voxel = self.voxel_size if self.voxel_size is not None else family(self.family).voxel_size
+        fam = self.family
+        if fam == "auto":
+            fam, why = infer_family(s, t, src, tgt)
+            (log.warning if "outdoor scans?" in why else log.info)("%s: family=%s (%s)", name, fam, why)
+        voxel = self.voxel_size if self.voxel_size is not None else family(fam).voxel_size
         res, timed = (self.resolution, {}) if self.resolution is not None else timed_resolution_for(
-            self.family, src, tgt)  # fmt: skip
+            fam, src, tgt)  # fmt: skip
         return Pair(
             name=name,
-            family=self.family,
+            family=fam,
             gt=gt,
             src_cloud=src,
             tgt_cloud=tgt,
@@ -165,7 +194,7 @@ class UserPairs:
                 "gt_file": None if g is None else str(g),
                 "dropped_points": (ds, dt),
             },
-            **family(self.family).thresholds(),
+            **family(fam).thresholds(),
         )
 
 
