@@ -188,6 +188,33 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
     assert "Powered by Hydra" not in out  # not Hydra's generic text
 
 
+def test_runs_with_a_parts_key_set_are_named_for_it_and_run_log_holds_the_summary(tmp_path):
+    """Issue 49 item 8: sampler.scores=exact and descriptor.impl=open3d runs got the default run's directory
+    name and header; run.log held none of the summary the console showed."""
+    runs = tmp_path / "runs"
+    p = run("limit=1", "sampler.scores=exact", "descriptor.impl=open3d", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    assert made.name.endswith("_fpfh_highpass_0.2_scores=exact_impl=open3d"), made.name
+    header = p.stdout.splitlines()[0]
+    assert header.endswith("protocol=honest sampler.scores=exact descriptor.impl=open3d"), header
+    log = (made / "run.log").read_text()
+    for line in p.stdout.splitlines():  # every line of the console's summary
+        assert line in log, line
+    p = run("limit=1", _default_run_dir(runs), tmp=tmp_path)  # the default run: a name of its own
+    assert p.returncode == 0 and len(list(runs.iterdir())) == 2
+    assert sorted(d.name.endswith("_highpass_0.2") for d in runs.iterdir()) == [False, True]
+
+
+def test_version_is_fastmac_exps():
+    """Issue 49 item 7: --version printed Hydra's version."""
+    from fastmac_exp import __version__
+
+    p = subprocess.run([sys.executable, "run.py", "--version"], cwd=REPO, capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    assert p.returncode == 0 and p.stdout.startswith(f"fastmac-exp {__version__} (Hydra "), p.stdout
+
+
 def test_summary_says_when_describe_times_come_from_the_cache(tmp_path):
     cache = f"cache.dir={tmp_path / 'cache'}"
     first = run("limit=1", cache, tmp=tmp_path / "a")

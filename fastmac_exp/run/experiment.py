@@ -482,7 +482,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         + (f" family={','.join(s['families'])}" if s.get("families") else "")
         + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
         + (f"samples={s['samples']} (ratio {s['ratio']})" if s.get("samples") else f"ratio={s.get('ratio')}")
-        + f" backend={s.get('backend')} protocol={s.get('protocol')}",
+        + f" backend={s.get('backend')} protocol={s.get('protocol')}"
+        + "".join(f" {o}" for o in s.get("options") or ()),
         "  ".join(
             [f"pairs: {s.get('pairs')}"]
             + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
