@@ -101,3 +101,19 @@ def test_every_readme_run_command_composes(command):
 
 def test_readme_commands_were_found():
     assert len(readme_run_commands()) >= 15
+
+
+def test_the_readme_lists_every_option_of_every_group_and_the_diagram_every_descriptor():
+    """Issue 49 item 7: spinnet was missing from the README's groups table and its "What a run does"."""
+    import re
+
+    readme = (CONF.parent / "README.md").read_text()
+    rows = dict(re.findall(r"^\| `([a-z/_]+)` \| ([^|]+) \|", readme, flags=re.M))
+    for group in ("dataset", "descriptor", "sampler", "backend", "tracker", "method", "experiment"):
+        listed = set(re.findall(r"[a-z0-9_]+", rows[group]))
+        missing = sorted(p.stem for p in (CONF / group).glob("*.yaml") if p.stem not in listed)
+        assert not missing, f"README's {group} row lacks {missing}"
+    diagram = next(ln for ln in readme.splitlines() if ln.startswith("descriptor ("))
+    aliases = {"fcgf"}
+    for p in (CONF / "descriptor").glob("*.yaml"):
+        assert p.stem in aliases or re.search(rf"\b{p.stem}\b", diagram), p.stem
