@@ -82,7 +82,7 @@ def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
                         "rival_lam": res.rival_chance, "decoy": res.decoy_count,
                         "success": r.get("success"), "re_deg": r.get("re_deg"), "te_cm": r.get("te_cm"),
                         "ms": (time.perf_counter() - t0) * 1e3, "t_decoy_ms": res.timings.get("decoy"),
-                        "t_total_ms": res.timings.get("total"), "t_trust_ms": res.timings.get("trust"),
+                        "t_total_ms": res.timings.get("total"), "t_check_ms": res.timings.get("check"),
                     })  # fmt: skip
         last = rows[-1]
         print(f"[{ci + 1}/{len(cases)}] {case.kind:10s} {case.name[:60]:60s} {last.get('half', '')[:5]} "

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -21,6 +20,7 @@ from fastmac_exp.options import apply_options, compose_run, instantiate_part
 from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.pipeline.flow import DECOY_CHOICES
+from fastmac_exp.pipeline.stopwatch import Stopwatch, registration_parts
 from fastmac_exp.run.checks import check_devices
 from fastmac_exp.samplers import Sampler
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
@@ -112,6 +112,7 @@ def register(
         raise InputError("register(source, target): a target cloud is needed when source is a cloud")
     call = dict(family=family, voxel_size=voxel_size, sampler=sampler, ratio=ratio, samples=samples,
                 backend=backend, descriptor=descriptor, seed=seed, decoy=decoy, options=options)  # fmt: skip
+    t_call = time.perf_counter()
     prepared = _Prepared(source, target, family) if clouds else None
     described: dict[str, Correspondences] = {}  # steps that match alike share one description
 
@@ -121,12 +122,29 @@ def register(
         except FastMacError as exc:  # the call itself is the user's to fix; a wider step's is not
             if step.name == "first":
                 raise
-            return _failed(str(exc), 0.0)
+            return _failed(str(exc))
 
     if escalate == "off":
-        return attempt(Step("first"))
-    fpfh = descriptor is None or descriptor == "fpfh"
-    return escalate_steps(attempt, available_steps(clouds, fpfh), budget_s)
+        result = attempt(Step("first"))
+    else:
+        fpfh = descriptor is None or descriptor == "fpfh"
+        result = escalate_steps(attempt, available_steps(clouds, fpfh), budget_s)
+    return _account(result, prepared, (time.perf_counter() - t_call) * 1e3)
+
+
+def _account(result: RegistrationResult, prepared: _Prepared | None, call_ms: float) -> RegistrationResult:
+    """The returned result's timings as one call's: the cleaning (done once for every step) after the set-up,
+    and, where the escalation tried more than one step, `escalation`: the time of the steps whose pose was
+    not kept; the stages still add up to `end_to_end`, the call's time."""
+    t = result.timings
+    stages = {k: v for k, v in t.items() if k not in ("total", "end_to_end")}
+    if prepared is not None:
+        stages = {k: v for k, v in stages.items() if k == "setup"} | {"clean": prepared.clean_ms} | {
+            k: v for k, v in stages.items() if k != "setup"}  # fmt: skip
+    if len(result.escalation) > 1:
+        stages["escalation"] = max(call_ms - sum(stages.values()), 0.0)
+    result.timings = {**stages, "total": t.get("total", 0.0), "end_to_end": sum(stages.values())}
+    return result
 
 
 class _Prepared:
@@ -135,8 +153,10 @@ class _Prepared:
     def __init__(self, source: Any, target: Any, family: str) -> None:
         from fastmac_exp.io import clean_cloud
 
+        t0 = time.perf_counter()
         self.src = clean_cloud(_points(source, "source"), "source cloud")[0]
         self.tgt = clean_cloud(_points(target, "target"), "target cloud")[0]
+        self.clean_ms = (time.perf_counter() - t0) * 1e3
         self.family = family
         self._resolution: float | None = None
 
@@ -179,6 +199,7 @@ def _register_once(
     voxel_scale: float,
 ) -> RegistrationResult:
     """One configuration, as register(escalate="off") runs it."""
+    watch = Stopwatch()  # every stage, back to back: result.timings adds up to end_to_end
     picks: dict[str, str] = {}
     if isinstance(sampler, str):
         picks["sampler"] = sampler
@@ -198,9 +219,9 @@ def _register_once(
     graph_overrides = OmegaConf.to_container(cfg.graph, resolve=True)
     mac_overrides = OmegaConf.to_container(cfg.mac, resolve=True)
     graph_key = "fpfh"
-    describe_ms = 0.0
     offset = np.zeros(3)  # correspondences are moved by register_correspondences itself
     mac_resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
+    watch.lap("setup")
     if isinstance(source, Correspondences):
         corr = source
     else:
@@ -211,9 +232,9 @@ def _register_once(
                 f"register(): voxel_size must be positive or None (the family's), got {voxel_size}"
             )
         voxel = (fam.voxel_size if voxel_size is None else float(voxel_size)) * voxel_scale
-        t0 = time.perf_counter()
         if resolution != "fixed":
             mac_resolution = prepared.resolution
+        watch.lap("resolution")
         pair = Pair(name="register", family=family, src_cloud=prepared.src, tgt_cloud=prepared.tgt,
                     resolution=mac_resolution, voxel_size=voxel, **fam.thresholds())  # fmt: skip
         desc = instantiate_part(cfg.descriptor) if isinstance(descriptor, str) else descriptor
@@ -223,17 +244,15 @@ def _register_once(
         key = (
             f"{OmegaConf.to_yaml(cfg.descriptor) if isinstance(descriptor, str) else id(desc)}|{voxel}|{seed}"
         )
-        if key in described:
-            corr = described[key]
-        else:
-            corr = desc(moved_pair(pair, offset), rng)
-            described[key] = corr
-            describe_ms = (time.perf_counter() - t0) * 1e3
+        if key not in described:
+            described[key] = desc(moved_pair(pair, offset), rng)
+        corr = described[key]
+        watch.lap("describe")
     if len(corr) < 3:  # else the sampler's advice would be a ratio above 1
         error = f"{len(corr)} correspondence(s): a clique, and a pose, needs at least 3"
         if prepared is None:
             raise InputError(error)
-        return _failed(error, describe_ms)
+        return _failed(error, watch)
     params = mac_params_for(family, graph_key, mac_resolution, graph_overrides, mac_overrides)
     sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, graph_overrides, mac_overrides).graph
     try:
@@ -242,16 +261,22 @@ def _register_once(
             samples=samples, decoy=decoy,
         )  # fmt: skip
     except RegistrationFailed as exc:  # a result flagged as failed, not an exception to catch
-        return _failed(str(exc), describe_ms)
-    result.timings["describe"] = describe_ms
+        return _failed(str(exc), watch)
+    watch.lap_in_parts(registration_parts(result.timings))
+    result.timings = watch.timings(result.timings["total"])
     return result_to_original(result, offset)
 
 
-def _failed(error: str, describe_ms: float) -> RegistrationResult:
+def _failed(error: str, watch: Stopwatch | None = None) -> RegistrationResult:
+    """A result flagged as failed (NaN pose), with the stages timed before it failed."""
+    timings: dict[str, float] = {}
+    if watch is not None:
+        watch.lap("other")
+        timings = watch.timings(0.0)
     nan = np.full((4, 4), np.nan)
     empty = np.zeros(0, np.int64)
     return RegistrationResult(pose=nan, pose_unrefined=nan.copy(), kept=empty, clique=empty, error=error,
-                              timings={"describe": describe_ms})  # fmt: skip
+                              timings=timings)  # fmt: skip
 
 
 def _backend_choice(name: str) -> str:

@@ -91,7 +91,6 @@ def escalate(
             break
     assert best is not None
     best.escalation = tried
-    best.timings["escalation"] = (time.perf_counter() - t0) * 1e3
     return best
 
 

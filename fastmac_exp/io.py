@@ -15,7 +15,10 @@ Formats (spec section 1.1):
 from __future__ import annotations
 
 import functools
+import logging
 import math
+import os
+import stat
 import warnings
 from pathlib import Path
 
@@ -25,6 +28,8 @@ from fastmac_exp.errors import InputError
 from fastmac_exp.geometry.resolution import mesh_resolution
 from fastmac_exp.geometry.transforms import check_rigid
 from fastmac_exp.types import MAX_COORD, Correspondences
+
+log = logging.getLogger(__name__)
 
 CLOUD_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".txt", ".npy", ".bin")
 MATRIX_EXTENSIONS = (".txt", ".npy", ".log", ".mat", "")
@@ -296,25 +301,60 @@ def read_points(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(pts, dtype=np.float64)
 
 
-def clean_cloud(points: np.ndarray, where: str, drop_zeros: bool = True) -> tuple[np.ndarray, int]:
+def clean_cloud(
+    points: np.ndarray, where: str, drop_zeros: bool = True, keep_zeros: str = ""
+) -> tuple[np.ndarray, int]:
     """Drop non-finite rows (missing returns in organised clouds) and, if asked, points exactly at (0, 0, 0)
     (invalid LiDAR returns, e.g. small_gicp's scans); raise on coordinates beyond 1e6 m or an empty result.
+    A drop is logged as a warning with its counts and reasons (`keep_zeros`: how to keep the zeros).
 
     Returns (points, number dropped).
     """
     check_points(points, where, allow_nonfinite=True)
-    keep = np.isfinite(points).all(axis=1)
-    if drop_zeros:
-        keep &= np.any(points != 0.0, axis=1)
+    finite = np.isfinite(points).all(axis=1)
+    keep = finite & np.any(points != 0.0, axis=1) if drop_zeros else finite
     n_drop = int(len(points) - keep.sum())
     out = np.ascontiguousarray(points[keep]) if n_drop else points
     if len(out) == 0:
         raise InputError(f"{where}: no valid points (read {len(points)}, all NaN/inf or exactly zero)")
+    if n_drop:
+        why = []
+        if n_bad := int(len(points) - finite.sum()):
+            why.append(f"{n_bad} not finite (NaN/inf)")
+        if n_zero := n_drop - n_bad:
+            why.append(f"{n_zero} exactly at (0, 0, 0), taken for invalid LiDAR returns" + (
+                f" ({keep_zeros})" if keep_zeros else ""))  # fmt: skip
+        log.warning("%s: read %d points, dropped %d: %s", where, len(points), n_drop, "; ".join(why))
     return out, n_drop
 
 
+def check_input_file(path: Path) -> str | None:
+    """What is wrong with an input file that can be told without reading it through (None: nothing):
+    missing, a directory, empty, unreadable, or a .ply without the 'ply' magic. A FIFO or device is left
+    alone: reading it would consume it."""
+    if not path.exists():
+        return "no such file"
+    if path.is_dir():
+        return "a directory, not a file"
+    if not stat.S_ISREG(path.stat().st_mode):
+        return None
+    if path.stat().st_size == 0:
+        return "an empty file (0 bytes)"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError as e:
+        return f"cannot be read ({os.strerror(e.errno) if e.errno else e})"
+    if path.suffix.lower() == ".ply" and not head.lstrip().lower().startswith(b"ply"):
+        return "not a PLY file (it does not start with 'ply'; headerless 'x y z' text wants .xyz or .txt)"
+    return None
+
+
 def load_cloud(path: str | Path, drop_zeros: bool = True) -> np.ndarray:
-    """`read_points` then `clean_cloud`: a finite, non-empty (N, 3) float64 cloud."""
+    """A point-cloud file as the CLI reads it (`fastmac_exp.load_cloud`): .ply / .pcd (Open3D), .npy (N, 3+),
+    KITTI .bin (float32 x y z reflectance), .xyz / .txt / .pts text (the first three columns); NaN/inf rows
+    and, with `drop_zeros`, points exactly at the origin are dropped with a warning that counts them.
+    Returns a finite, non-empty (N, 3) float64 array; a bad file raises InputError naming it."""
     return clean_cloud(read_points(path), str(path), drop_zeros)[0]
 
 

@@ -70,35 +70,6 @@ def corr_95_outliers():
     return make_correspondences(n=600, inlier_ratio=0.05, noise=0.002, seed=3)
 
 
-def interrupt_child(code: str, after_s: float, watchdog_s: float = 30.0) -> tuple[int, str, float]:
-    """Runs `code` in a child Python that prints "ready" before its long call and "interrupted" when a
-    KeyboardInterrupt ends it; sends SIGINT `after_s` seconds after "ready" (the child must still be
-    running then). Returns (exit code, the line printed after the signal, seconds from signal to line)."""
-    import signal
-    import subprocess
-    import sys
-    import threading
-    import time
-
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout.readline().strip() == "ready"
-        time.sleep(after_s)
-        assert proc.poll() is None, "the child should still be inside its long call"
-        t0 = time.perf_counter()
-        proc.send_signal(signal.SIGINT)
-        watchdog = threading.Timer(watchdog_s, proc.kill)  # a child that ignores SIGINT must not hang
-        watchdog.start()
-        line = proc.stdout.readline().strip()  # printed as soon as the core has given control back
-        watchdog.cancel()
-        elapsed = time.perf_counter() - t0
-        rc = proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    return rc, line, elapsed
-
-
 @pytest.fixture(autouse=True)
 def _own_data_home(tmp_path_factory, monkeypatch):
     """No test reads or writes the user's data home (dataset=3dmatch|3dlomatch|kitti look there)."""

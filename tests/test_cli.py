@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -46,6 +47,49 @@ def test_a_missing_input_file_is_refused_before_the_run_starts(tmp_path):
     assert p.returncode == 2, out[-2000:]
     assert f"dataset.source: no such file: {REPO / 'nosuch_a.ply'}" in out
     assert not (tmp_path / "run").exists()
+
+
+def test_empty_and_headless_input_files_are_refused_before_the_run_starts(tmp_path):
+    """Issue 49 item 4: an empty file (or a .ply that is no PLY) is a config error like a missing one: exit
+    2 and its path before a run directory exists, not a failed pair in a run directory."""
+    (b,) = _not_clouds(tmp_path, "b.xyz")
+    empty = tmp_path / "empty.ply"
+    empty.write_bytes(b"")
+    p = run("dataset=pairs", f"dataset.source={empty}", f"dataset.target={b}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode == 2, out[-2000:]
+    assert f"dataset.source: an empty file (0 bytes): {empty}" in out and "Traceback" not in out
+    assert not (tmp_path / "run").exists()
+    headless = tmp_path / "xyz.ply"
+    headless.write_text("0 0 0\n1 1 1\n")
+    gt_empty = tmp_path / "gt.txt"
+    gt_empty.write_text("")
+    p = run("dataset=pairs", f"dataset.source={b}", f"dataset.target={headless}", tmp=tmp_path)
+    assert (
+        p.returncode == 2
+        and "dataset.target: not a PLY file (it does not start with 'ply'" in p.stdout + p.stderr
+    )
+    p = run(
+        "dataset=pairs", f"dataset.source={b}", f"dataset.target={b}", f"dataset.gt={gt_empty}", tmp=tmp_path
+    )
+    assert p.returncode == 2 and f"dataset.gt: an empty file (0 bytes): {gt_empty}" in p.stdout + p.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_dropped_points_are_said_on_the_console_and_in_run_log(tmp_path):
+    """Issue 49 item 4: points at the origin and NaN rows are dropped with a line saying how many of what
+    was read, and why (a 3-point cloud whose origin point vanished said '2 point(s) ... (from 2)')."""
+    src, tgt, gt = _blob_pair(tmp_path)
+    pts = np.load(src)
+    np.save(src, np.r_[pts, np.zeros((3, 3)), np.full((2, 3), np.nan)])
+    p = run("dataset=pairs", f"dataset.source={src}", f"dataset.target={tgt}", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    said = (
+        f"source cloud {src}: read {len(pts) + 5} points, dropped 5: 2 not finite (NaN/inf); 3 exactly at "
+        "(0, 0, 0), taken for invalid LiDAR returns (dataset.drop_zeros=false keeps them)"
+    )
+    assert said in p.stdout + p.stderr and said in (tmp_path / "run" / "run.log").read_text()
+    assert f"target cloud {tgt}: read" not in p.stdout + p.stderr  # nothing dropped, nothing said
 
 
 def test_an_unknown_option_value_is_refused_before_the_run_starts(tmp_path):
@@ -144,14 +188,65 @@ def test_help_says_what_the_app_does_and_lists_the_groups():
     assert "Powered by Hydra" not in out  # not Hydra's generic text
 
 
+def test_runs_with_a_parts_key_set_are_named_for_it_and_run_log_holds_the_summary(tmp_path):
+    """Issue 49 item 8: sampler.scores=exact and descriptor.impl=open3d runs got the default run's directory
+    name and header; run.log held none of the summary the console showed."""
+    runs = tmp_path / "runs"
+    p = run("limit=1", "sampler.scores=exact", "descriptor.impl=open3d", _default_run_dir(runs), tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (made,) = runs.iterdir()
+    assert made.name.endswith("_fpfh_highpass_0.2_scores=exact_impl=open3d"), made.name
+    header = p.stdout.splitlines()[0]
+    assert header.endswith("protocol=honest sampler.scores=exact descriptor.impl=open3d"), header
+    log = (made / "run.log").read_text()
+    for line in p.stdout.splitlines():  # every line of the console's summary
+        assert line in log, line
+    p = run("limit=1", _default_run_dir(runs), tmp=tmp_path)  # the default run: a name of its own
+    assert p.returncode == 0 and len(list(runs.iterdir())) == 2
+    assert sorted(d.name.endswith("_highpass_0.2") for d in runs.iterdir()) == [False, True]
+
+
+def test_version_is_fastmac_exps():
+    """Issue 49 item 7: --version printed Hydra's version."""
+    from fastmac_exp import __version__
+
+    p = subprocess.run([sys.executable, "run.py", "--version"], cwd=REPO, capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    assert p.returncode == 0 and p.stdout.startswith(f"fastmac-exp {__version__} (Hydra "), p.stdout
+
+
 def test_summary_says_when_describe_times_come_from_the_cache(tmp_path):
     cache = f"cache.dir={tmp_path / 'cache'}"
     first = run("limit=1", cache, tmp=tmp_path / "a")
     assert first.returncode == 0, first.stderr[-2000:]
-    assert "from the cache" not in first.stdout and "median ms: describe " in first.stdout
+    assert "from the cache" not in first.stdout and "  describe " in first.stdout
     second = run("limit=1", cache, tmp=tmp_path / "b")
     assert second.returncode == 0, second.stderr[-2000:]
     assert "describe (all from the cache: original times)" in second.stdout
+
+
+def test_the_timings_add_up_to_the_pairs_end_to_end_time(tmp_path):
+    """Issue 49 item 2: every stage a pair spends time in has a name in the row and the summary (the
+    resolution and the loading were in none: describe + total was 91-101 ms of a 258-275 ms pair), they sum
+    to the row's end-to-end time, and `total` is shown as what it is, sampling + MAC."""
+    import pandas as pd
+
+    p = run("limit=1", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    row = pd.read_csv(tmp_path / "run" / "results.csv").iloc[0]
+    stages = ["load", "resolution", "describe", "sampling", "graph", "cliques", "selection", "pose", "other",
+              "check", "evaluate"]  # fmt: skip
+    assert [c for c in row.index if c.startswith("t_")] == [f"t_{s}_ms" for s in stages] + [
+        "t_total_ms", "t_end_to_end_ms"]  # fmt: skip
+    assert all(row[f"t_{s}_ms"] >= 0 for s in stages)
+    assert sum(row[f"t_{s}_ms"] for s in stages) == pytest.approx(row["t_end_to_end_ms"], rel=1e-9)
+    assert sum(row[f"t_{s}_ms"] for s in ("sampling", "graph", "cliques", "selection", "pose")) <= row[
+        "t_total_ms"]  # fmt: skip
+    lines = p.stdout.splitlines()
+    (i,) = [k for k, ln in enumerate(lines) if ln.startswith("median ms: ")]
+    assert all(f"  {s} " in f" {lines[i]} " for s in stages[1:]) and lines[i].startswith("median ms: load ")
+    assert f"end to end {row['t_end_to_end_ms']:.1f} (every stage)" in lines[i + 1]
+    assert f"sampling + MAC {row['t_total_ms']:.1f} (the papers' total)" in lines[i + 1]
 
 
 def _default_run_dir(tmp: Path) -> str:
@@ -268,7 +363,8 @@ def test_parallel_sweep_members_print_whole_summaries(tmp_path):
     for i in starts:  # the block's lines follow each other, each one whole
         assert lines[i + 1].startswith("pairs: 1  registered:")
         assert lines[i + 2].startswith("RR: ") and lines[i + 3].startswith("median ms: ")
-        j = i + 4
+        assert lines[i + 4].strip().startswith("end to end ")
+        j = i + 5
         while lines[j].startswith("failed x"):  # a failed pair's reason, if any
             j += 1
         assert lines[j].startswith("results: ")
@@ -349,6 +445,28 @@ def test_a_pair_without_ground_truth_says_not_scored_and_gives_its_pose(tmp_path
             tmp=tmp_path / "again")  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]
     assert "pairs: 1  registered: 1 of 1  failed with an error: 0" in p.stdout
+
+
+def test_pairs_of_kitti_bin_files_take_the_kitti_family_and_say_so(tmp_path):
+    """Issue 49 item 6: dataset=pairs with Velodyne .bin files ran under family=3dmatch without a word
+    (707 ms to describe instead of 147 ms with dataset.family=kitti)."""
+    import pandas as pd
+
+    src, tgt, _ = _blob_pair(tmp_path)
+    bins = []
+    for path in (src, tgt):  # a 90 m outdoor-sized blob as float32 x y z reflectance
+        pts = np.load(path) * 30.0
+        np.c_[pts, np.ones(len(pts))].astype("<f4").tofile(path.with_suffix(".bin"))
+        bins.append(path.with_suffix(".bin"))
+    p = run("dataset=pairs", f"dataset.source={bins[0]}", f"dataset.target={bins[1]}", tmp=tmp_path)
+    out = p.stdout + p.stderr
+    assert p.returncode in (0, 1), out[-2000:]  # registered or not: the family is the point here
+    assert (
+        "src+tgt: family=kitti (the files are KITTI Velodyne .bin scans; dataset.family=3dmatch for the "
+        "indoor rules)" in out
+    )
+    assert "family=kitti descriptor=fpfh" in p.stdout  # the summary's header
+    assert pd.read_csv(tmp_path / "run" / "results.csv")["family"].tolist() == ["kitti"]
 
 
 def test_group_mistakes_get_one_line_and_exit_2(tmp_path):

@@ -461,9 +461,9 @@ def test_clique_caps_are_recorded():
     assert cap == ""
 
     i, j = er_edges(400, 0.5, seed=5)  # would take far longer than the limit
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # CPU time: what the search did, however loaded the machine
     got, cap = core.maximal_cliques(400, i, j, 3, time_limit_s=0.05)
-    assert time.perf_counter() - t0 < 2.0
+    assert time.process_time() - t0 < 2.0
     assert cap == "time_limit=0.05s"
     assert is_canonical(got)
 

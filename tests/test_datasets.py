@@ -544,7 +544,7 @@ def test_precomputed_descriptor():
         ("kitti", Kitti, {"descriptor": "fcgf", "front_end": "auto"}),
         ("fragments_3dmatch", Fragments3DMatch, {"family": "3dmatch", "gt_root": None}),
         ("kitti_raw", KittiRaw, {"pairs": None, "sequences": [8, 9, 10], "min_distance": 10.0}),
-        ("pairs", UserPairs, {"source": None, "target": None, "gt": None, "family": "3dmatch"}),
+        ("pairs", UserPairs, {"source": None, "target": None, "gt": None, "family": "auto"}),
         ("shared_real", SharedRealPairs, {"root": "../shared/data", "category": None, "ids": None}),
     ],
 )
@@ -575,3 +575,24 @@ def test_precomputed_config_and_run_config_error():
 
     with pytest.raises(InputError, match=r"needs MAC's released fcgf correspondences(.|\n)*data add NAME"):
         Components(cfg)  # the experiment's own builder: an empty data home has no MAC correspondences
+
+
+def test_pairs_family_auto_says_which_rules_and_warns_on_outdoor_sized_clouds(tmp_path, caplog):
+    """Issue 49 item 6: family=auto (dataset=pairs' default) takes the indoor rules for clouds that are no
+    .bin scans and says so, with a warning where they span more than a room."""
+    from fastmac_exp.datasets.user_pairs import UserPairs
+
+    rng = np.random.default_rng(0)
+    room = rng.uniform(0, 4, (2000, 3))
+    np.save(tmp_path / "room.npy", room)
+    np.save(tmp_path / "street.npy", room * 20)
+    with caplog.at_level("INFO", logger="fastmac_exp.datasets.user_pairs"):
+        indoor = UserPairs(tmp_path / "room.npy", tmp_path / "room.npy").load(0)
+        outdoor = UserPairs(tmp_path / "street.npy", tmp_path / "street.npy").load(0)
+    assert indoor.family == outdoor.family == "3dmatch" and indoor.voxel_size == 0.05
+    said = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert said[0][0] == "INFO" and said[0][1].startswith("room+room: family=3dmatch (the clouds span 4.0 m")
+    assert (
+        said[1][0] == "WARNING" and "the clouds span 80 m: outdoor scans? dataset.family=kitti" in said[1][1]
+    )
+    assert UserPairs(tmp_path / "room.npy", tmp_path / "room.npy", family="kitti").load(0).family == "kitti"

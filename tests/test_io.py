@@ -324,3 +324,44 @@ def test_kitti_errors(tmp_path):
     (tmp_path / "calib2.txt").write_text("garbage line\n")
     with pytest.raises(InputError, match=r"calib2\.txt, line 1"):
         bf.read_kitti_calib(tmp_path / "calib2.txt")
+
+
+def test_register_says_what_it_dropped(caplog):
+    """Issue 49 item 4: register() drops NaN/inf rows and points at the origin with a warning that counts
+    them (it dropped them without a word, even at DEBUG)."""
+    import fastmac_exp
+
+    rng = np.random.default_rng(0)
+    tgt = rng.uniform(0, 2, (3000, 3))
+    src = tgt.copy()
+    src[:4] = np.nan
+    src[4] = np.inf
+    src[5:7] = 0.0
+    with caplog.at_level("WARNING", logger="fastmac_exp.io"):
+        fastmac_exp.register(src, tgt, backend="python")
+    (said,) = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert said == (
+        "source cloud: read 3000 points, dropped 7: 5 not finite (NaN/inf); 2 exactly at (0, 0, 0), "
+        "taken for invalid LiDAR returns"
+    )
+
+
+def test_the_public_loader_reads_what_the_cli_reads_and_open3d_imports_after_the_package(tmp_path):
+    """Issue 49 item 5: fastmac_exp.load_cloud is public, and after `import fastmac_exp` a user's own
+    `import open3d` works on a machine without a system libusb (it failed: libusb-1.0.so.0)."""
+    import subprocess
+    import sys
+
+    import fastmac_exp
+
+    cloud = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+    np.save(tmp_path / "c.npy", cloud)
+    np.c_[cloud, np.ones(200)].astype("<f4").tofile(tmp_path / "c.bin")
+    np.savetxt(tmp_path / "c.txt", cloud, fmt="%.9f")
+    for name in ("c.npy", "c.txt"):
+        np.testing.assert_allclose(fastmac_exp.load_cloud(tmp_path / name), cloud, atol=1e-9)
+    np.testing.assert_allclose(fastmac_exp.load_cloud(tmp_path / "c.bin"), cloud, atol=1e-6)
+    assert "load_cloud" in fastmac_exp.__all__
+    code = "import fastmac_exp, open3d; print(open3d.geometry.PointCloud().is_empty())"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.strip() == "True", p.stderr[-2000:]

@@ -225,3 +225,43 @@ def test_a_costly_descriptor_says_what_it_costs_when_the_run_starts(tmp_path, ca
     with caplog.at_level("WARNING", logger="fastmac_exp.run.experiment"):
         run_experiment(cfg, tmp_path / "run")
     assert any("about an hour a pair" in r.getMessage() for r in caplog.records)
+
+
+def test_a_stopwatch_times_its_stages_back_to_back(monkeypatch):
+    """Issue 49 item 2: each lap starts where the last ended, a lap timed inside is split into its parts
+    and the rest, and end_to_end is the whole span."""
+    from fastmac_exp.pipeline import stopwatch
+
+    clock = iter([10.0, 10.5, 12.0, 12.25, 13.0])
+    monkeypatch.setattr(stopwatch.time, "perf_counter", lambda: next(clock))
+    watch = stopwatch.Stopwatch()  # 10.0
+    watch.lap("load")  # 10.5
+    watch.lap("describe")  # 12.0
+    watch.lap("evaluate")  # 12.25
+    parts = stopwatch.registration_parts({"sampling": 200.0, "graph": 300.0, "total": 999.0})
+    watch.lap_in_parts(parts)  # 13.0: 750 ms, of which sampling and graph timed 500 inside
+    want = {"load": 500.0, "describe": 1500.0, "evaluate": 250.0, "other": 250.0, "sampling": 200.0,
+            "graph": 300.0, "total": 999.0, "end_to_end": 3000.0}  # fmt: skip
+    assert watch.timings(total=999.0) == pytest.approx(want)
+
+
+def test_register_names_every_stage_and_they_add_up():
+    """Issue 49 item 2: register() on two clouds: the set-up, the cleaning and MAC's mesh resolution have a
+    stage each (they were in none), and the stages sum to end_to_end, which is within the call's time."""
+    import time
+
+    import fastmac_exp
+    from fastmac_exp.geometry.metrics import PAIR_STAGES
+
+    rng = np.random.default_rng(0)
+    src = rng.uniform(0, 2, (4000, 3))
+    t0 = time.perf_counter()
+    result = fastmac_exp.register(src, src + [0.1, 0.0, 0.0], backend="python")
+    wall = (time.perf_counter() - t0) * 1e3
+    t = result.timings
+    stages = [k for k in t if k not in ("total", "end_to_end")]
+    assert stages == ["setup", "clean", "resolution", "describe", "other", "sampling", "graph", "cliques",
+                      "selection", "pose", "check"]  # fmt: skip
+    assert set(stages) <= set(PAIR_STAGES) and all(t[k] >= 0 for k in stages)
+    assert sum(t[k] for k in stages) == pytest.approx(t["end_to_end"], rel=1e-12)
+    assert t["end_to_end"] <= wall and t["total"] <= t["end_to_end"]

@@ -43,7 +43,7 @@ from fastmac_exp.atomic import save_npz
 from fastmac_exp.datasets import scenes as sc
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
-from fastmac_exp.geometry.resolution import resolution_for
+from fastmac_exp.geometry.resolution import timed_resolution_for
 from fastmac_exp.types import Pair
 
 log = logging.getLogger(__name__)
@@ -412,6 +412,8 @@ class SyntheticDataset:
         meta.update(seed=self.seed, index=k, kind=cfg.kind, cache=cache, load_ms=round(gen_ms, 1))
         if path is not None:
             meta["cache_file"] = str(path)
+        resolution, timed = timed_resolution_for(family, data["src"], data["tgt"])
+        meta.update(timed)
         return Pair(
             name=f"{family}_{k:03d}",
             family=family,
@@ -420,7 +422,7 @@ class SyntheticDataset:
             tgt_cloud=data["tgt"],
             voxel_size=self.voxel_size if self.voxel_size is not None else FAMILIES[family].voxel_size,
             **FAMILIES[family].thresholds(),
-            resolution=resolution_for(family, data["src"], data["tgt"]),
+            resolution=resolution,
             scene=f"synthetic-{cfg.kind}-s{self.seed}-{k:03d}",
             meta=meta,
         )

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,9 +17,11 @@ import numpy as np
 
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FIXED_RESOLUTION, check_family, family
-from fastmac_exp.geometry.resolution import resolution_for
-from fastmac_exp.io import clean_cloud, read_matrix, read_points
+from fastmac_exp.geometry.resolution import timed_resolution_for
+from fastmac_exp.io import check_input_file, clean_cloud, read_matrix, read_points
 from fastmac_exp.types import Pair
+
+log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # the folder holding the fastmac_exp package
 
@@ -45,9 +48,12 @@ OBJECT_RULES = {
 }
 
 
-def _load(path: Path, what: str, drop_zeros: bool) -> tuple[np.ndarray, int]:
+def _load(path: Path, what: str, drop_zeros: bool, keep_zeros: str = "") -> tuple[np.ndarray, int]:
     """(cleaned points, number of points dropped)."""
-    return clean_cloud(read_points(path), f"{what} {path}", drop_zeros)
+    return clean_cloud(read_points(path), f"{what} {path}", drop_zeros, keep_zeros)
+
+
+KEEP_ZEROS = "dataset.drop_zeros=false keeps them"
 
 
 def _as_list(v, what: str) -> list:
@@ -61,11 +67,32 @@ def _as_list(v, what: str) -> list:
         raise InputError(f"{what} must be a path or a list of paths, got {v!r}") from None
 
 
+# Clouds wider than this (the larger bounding-box side of either) under the indoor rules get a warning: a
+# 3DMatch fragment is 3-6 m across, a KITTI scan ~100 m.
+OUTDOOR_EXTENT_M = 30.0
+
+
+def infer_family(src_file: Path, tgt_file: Path, src: np.ndarray, tgt: np.ndarray) -> tuple[str, str]:
+    """family=auto: (family, why, for the log line). KITTI .bin files are Velodyne scans: kitti; anything
+    else takes the indoor rules (3dmatch), and the reason says so, with a warning's word where the clouds
+    look like outdoor scans."""
+    if src_file.suffix.lower() == ".bin" or tgt_file.suffix.lower() == ".bin":
+        return "kitti", "the files are KITTI Velodyne .bin scans; dataset.family=3dmatch for the indoor rules"
+    extent = max(float(np.ptp(src, axis=0).max()), float(np.ptp(tgt, axis=0).max()))
+    if extent > OUTDOOR_EXTENT_M:
+        return "3dmatch", (
+            f"the indoor rules, but the clouds span {extent:.0f} m: outdoor scans? dataset.family=kitti "
+            "for the outdoor rules"
+        )
+    return "3dmatch", f"the clouds span {extent:.1f} m: indoor rules; dataset.family=kitti for outdoor scans"
+
+
 class UserPairs:
     """One pair (or several, given lists of equal length) of point-cloud files.
 
     `source`/`target`: paths (relative ones to the working directory); `gt`: a 4x4 file mapping source into
-    target, or None. `family` picks the thresholds ("3dmatch", "3dlomatch", "kitti"); `voxel_size=None`
+    target, or None. `family` picks the thresholds ("3dmatch", "3dlomatch", "kitti"; "auto", the default:
+    kitti for KITTI .bin files, else 3dmatch, said on the log with the reason); `voxel_size=None`
     takes the family's (0.05 m indoors, 0.3 m for KITTI). Points exactly at the origin (invalid LiDAR
     returns) and non-finite points are dropped unless `drop_zeros=False` (then only non-finite ones).
     """
@@ -77,7 +104,7 @@ class UserPairs:
         source: str | Path | Sequence[str | Path] | None = None,
         target: str | Path | Sequence[str | Path] | None = None,
         gt: str | Path | Sequence[str | Path | None] | None = None,
-        family: str = "3dmatch",
+        family: str = "auto",
         voxel_size: float | None = None,
         resolution: float | None = None,
         drop_zeros: bool = True,
@@ -94,7 +121,8 @@ class UserPairs:
     def _index(self) -> list[tuple[str, Path, Path, Path | None]]:
         if self._entries is not None:
             return self._entries
-        check_family(self.family)
+        if self.family != "auto":
+            check_family(self.family)
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise InputError(f"pairs: voxel_size must be positive or null, got {self.voxel_size}")
         src, tgt = _as_list(self.source, "source"), _as_list(self.target, "target")
@@ -126,12 +154,12 @@ class UserPairs:
         return [n for n, *_ in self._index()]
 
     def check_inputs(self) -> None:
-        """Every named file exists (a run checks this before it starts, not pair by pair)."""
+        """Every named file exists, is readable and not empty (a run checks this before it starts, not pair
+        by pair)."""
         for _, *paths in self._index():
             for key, path in zip(("source", "target", "gt"), paths):
-                if path is not None and (not path.exists() or path.is_dir()):
-                    what = "a directory, not a file" if path.exists() else "no such file"
-                    raise InputError(f"dataset.{key}: {what}: {path.resolve()}")
+                if path is not None and (problem := check_input_file(path)):
+                    raise InputError(f"dataset.{key}: {problem}: {path.resolve()}")
 
     def __len__(self) -> int:
         return len(self._index())
@@ -141,27 +169,32 @@ class UserPairs:
         if not 0 <= index < len(entries):
             raise IndexError(f"pairs: pair index {index} out of range (0..{len(entries) - 1})")
         name, s, t, g = entries[index]
-        src, ds = _load(s, "source cloud", self.drop_zeros)
-        tgt, dt = _load(t, "target cloud", self.drop_zeros)
+        src, ds = _load(s, "source cloud", self.drop_zeros, KEEP_ZEROS)
+        tgt, dt = _load(t, "target cloud", self.drop_zeros, KEEP_ZEROS)
         gt = read_matrix(g) if g is not None else None
-        voxel = self.voxel_size if self.voxel_size is not None else family(self.family).voxel_size
+        fam = self.family
+        if fam == "auto":
+            fam, why = infer_family(s, t, src, tgt)
+            (log.warning if "outdoor scans?" in why else log.info)("%s: family=%s (%s)", name, fam, why)
+        voxel = self.voxel_size if self.voxel_size is not None else family(fam).voxel_size
+        res, timed = (self.resolution, {}) if self.resolution is not None else timed_resolution_for(
+            fam, src, tgt)  # fmt: skip
         return Pair(
             name=name,
-            family=self.family,
+            family=fam,
             gt=gt,
             src_cloud=src,
             tgt_cloud=tgt,
             voxel_size=float(voxel),
-            resolution=(
-                resolution_for(self.family, src, tgt) if self.resolution is None else self.resolution
-            ),
+            resolution=res,
             meta={
+                **timed,
                 "source_file": str(s),
                 "target_file": str(t),
                 "gt_file": None if g is None else str(g),
                 "dropped_points": (ds, dt),
             },
-            **family(self.family).thresholds(),
+            **family(fam).thresholds(),
         )
 
 
@@ -268,8 +301,9 @@ class SharedRealPairs:
         tgt, dt = _load(root / e["target"], "target cloud", True)
         gt = read_matrix(root / e["gt"])
         rules = self.rules(e)
+        timed = {}
         if "resolution" not in rules:  # computed from the clouds where MAC computes it (indoor families)
-            rules["resolution"] = resolution_for(rules["family"], src, tgt)
+            rules["resolution"], timed = timed_resolution_for(rules["family"], src, tgt)
         return Pair(
             name=e["id"],
             gt=gt,
@@ -277,6 +311,7 @@ class SharedRealPairs:
             tgt_cloud=tgt,
             scene=e["category"],
             meta={
+                **timed,
                 "category": e["category"],
                 "dataset": e.get("dataset", ""),
                 "note": e.get("note", ""),

@@ -34,6 +34,13 @@ def pose_errors(pose: np.ndarray, gt: np.ndarray, re_max_deg: float, te_max_m: f
 STAGES = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
 MAC_STAGES = STAGES[1:-1]  # what `total` sums: sampling and MAC's four stages
 TURBOREG_STAGES = ("pivots", "hypotheses")  # backend=turboreg's stages besides graph and pose
+# Everything a pair spends time in, in its order (a row has those it went through; pipeline/stopwatch.py
+# times them back to back): `setup` and `clean` are register()'s, `load` the experiment's (the files,
+# the cleaning), `other` the glue inside sampling + MAC, `check` the pose's inliers and trust, `evaluate`
+# the GT labels and the verdict. `end_to_end` is their sum; `total` stays sampling + MAC, the papers' figure.
+PAIR_STAGES = ("setup", "load", "clean", "resolution", "describe", "sampling", "graph", "cliques",
+               "selection", "pivots", "hypotheses", "pose", "other", "check", "decoy", "escalation",
+               "evaluate")  # fmt: skip
 
 
 def summarize(table: pd.DataFrame) -> dict:
@@ -66,7 +73,7 @@ def summarize(table: pd.DataFrame) -> dict:
         if "inlier_ratio_kept" in table
         else float("nan"),
     }
-    for stage in STAGES + TURBOREG_STAGES:
+    for stage in (*PAIR_STAGES, "total", "end_to_end"):
         col = f"t_{stage}_ms"
         if col in table:
             out[f"median_{stage}_ms"] = float(table[col].median())

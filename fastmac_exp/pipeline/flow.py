@@ -25,6 +25,7 @@ from fastmac_exp.geometry.trust import ChanceCounter, assess, explained, rival_s
 from fastmac_exp.params import GraphParams, MacParams, mac_params_for
 from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.pipeline.row import PairRow
+from fastmac_exp.pipeline.stopwatch import Stopwatch, registration_parts
 from fastmac_exp.samplers import Sampler, SampleResult
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -58,13 +59,16 @@ def run_pair(
     cache_key: str | None = None,
     samples: int | str | None = None,
     decoy: str = "auto",
+    watch: Stopwatch | None = None,
 ) -> PairOutcome:
     """Describe, sample, register and evaluate one pair; exceptions propagate to the caller.
 
     `row` is filled in place, so a pair that fails later keeps what was measured. With a cache and a
     key, the descriptor's output is read from / written to the cache (its original describe time is
-    reported, and the row says `describe_cached`).
+    reported, and the row says `describe_cached`). `watch`: the pair's stopwatch, already holding what came
+    before (the experiment's `load`); the row's timings are its stages back to back (pipeline/stopwatch.py).
     """
+    watch = watch if watch is not None else Stopwatch()
     row = row if row is not None else PairRow(index=0, pair=pair.name, dataset="", descriptor=descriptor.name,
                                               sampler=sampler.name, backend=getattr(backend, "name", ""),
                                               ratio=ratio, seed=0, protocol=protocol)  # fmt: skip
@@ -79,8 +83,13 @@ def run_pair(
     corr, describe_ms, cached = describe(moved, descriptor, desc_rng, cache, cache_key)
     if cached:
         row.describe_cached = True
+        watch.lap("other")  # reading the cache
+        watch.ms["describe"] = describe_ms  # the original computation's, as the row has always said
+    else:
+        watch.lap_in_parts({"describe": describe_ms})  # other: the frame's move, the cache's write
     if moved.gt is not None and corr.labels is None:
         moved.label(corr)
+    watch.lap("evaluate")  # the labels are for scoring
     key = descriptor.graph_key
     params = mac_params_for(pair.family, key, pair.resolution, graph_overrides, mac_overrides)
     # FastMAC's sampling graph fixes the resolution (spec 7.2: FIXED_RESOLUTION, rescaled for object scans);
@@ -106,6 +115,7 @@ def run_pair(
         decoy=decoy,
         distinct=(pair.re_thresh_deg, pair.te_thresh_m),
     )
+    watch.lap_in_parts(registration_parts(result.timings))
     kept_labels = corr.labels[result.kept] if corr.labels is not None else None
     if sample.scores_used:
         row.set(scores=sample.scores_used, anchors=sample.anchors)
@@ -140,7 +150,8 @@ def run_pair(
     result_to_original(result, offset)
     if offset.any():
         corr = translate(corr, offset)
-    row.timings = {"describe": describe_ms, **result.timings}
+    watch.lap("evaluate")
+    row.timings = watch.timings(result.timings["total"])
     row.pose = " ".join(f"{v:.17g}" for v in result.pose.ravel())  # exact: georeferenced poses are ~1e6
     return PairOutcome(row=row.to_dict(), pair=pair, corr=corr, result=result, sample=sample)
 
@@ -239,8 +250,8 @@ def register_correspondences(
     result.kept = kept
     result.clique = kept[result.clique]
     result.scores = sample.scores
-    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "total": total,
-                      "trust": trust_ms, **({"decoy": decoy_ms} if decoy_ms is not None else {})}  # fmt: skip
+    result.timings = {"sampling": sample.timings.get("sampling", 0.0), **result.timings, "check": trust_ms,
+                      **({"decoy": decoy_ms} if decoy_ms is not None else {}), "total": total}  # fmt: skip
     return result, sample
 
 

@@ -20,6 +20,8 @@ import matplotlib
 matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.text  # noqa: E402
+import matplotlib.transforms  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
@@ -136,8 +138,7 @@ def _suptitle(fig, title: str) -> None:
 def plot_time_profile(
     agg: pd.DataFrame,
     path: Path,
-    title: str = "Time profile: median time per stage (bars: stage medians; line: median total; "
-    "y scales differ)",
+    title: str = "Time profile: median time per stage (bars: stage medians; line: median total)",
 ) -> Path | None:
     """Stacked median stage times against ratio; one panel per method, one row per dataset x descriptor."""
     stages = [s for s in PROFILE_STAGES if f"t_{s}_ms" in agg and agg[f"t_{s}_ms"].notna().any()]
@@ -165,9 +166,15 @@ def plot_time_profile(
                 v = np.nan_to_num(m[f"t_{s}_ms"].to_numpy(float))
                 ax.bar(x, v, bottom=bottom, color=STAGE_COLORS[s], label=STAGE_LONG[s], width=0.7)
                 bottom += v
+            untimed = ~m[[f"t_{s}_ms" for s in stages]].notna().any(axis=1).to_numpy()
+            for xi in x[untimed]:  # a member whose pairs all failed: say so, not an empty slot
+                ax.text(xi, 0.5, "no times:\nevery pair\nfailed", transform=ax.get_xaxis_transform(),
+                        ha="center", va="center", fontsize=7, color="0.35", rotation=90)  # fmt: skip
             if "t_total_ms" in m:
                 tot = m["t_total_ms"].to_numpy(float)
-                ax.scatter(x, tot, marker="_", s=300, color="k", zorder=3, label="median total")
+                ax.scatter(
+                    x, tot, marker="_", s=300, color="k", zorder=3, label="median total (sampling + MAC)"
+                )
                 for xi, ti, top in zip(x, tot, bottom, strict=True):
                     if math.isfinite(ti):  # above the bar too: the medians' sum can exceed the total's median
                         ax.annotate(f"{ti:.3g}", (xi, max(ti, top)), textcoords="offset points",
@@ -185,10 +192,11 @@ def plot_time_profile(
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             legend.setdefault(lab, h)
     handles, labels = list(legend.values()), list(legend.keys())
-    _suptitle(fig, title)
+    shown = sum(ax.get_visible() for ax in axes.flat)
+    _suptitle(fig, title + ("; each panel its own y scale" if shown > 1 else ""))
     # below the panels: inside one it hid the bars and total labels it lay on
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=8,
-               frameon=False)  # fmt: skip
+    columns = min(len(labels), 3 if ncols > 1 else 2)  # a one-panel figure is too narrow for three
+    fig.legend(handles, labels, loc="outside lower center", ncols=columns, fontsize=8, frameon=False)
     for ax in axes.flat:  # room above the tallest bar for its total's label
         if ax.get_visible():
             ax.set_ylim(top=ax.get_ylim()[1] * 1.08)
@@ -201,6 +209,14 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
     """RR against median total time; one point per method and ratio, one panel per dataset x descriptor."""
     if agg.empty or "t_total_ms" not in agg or not agg["t_total_ms"].notna().any():
         return None
+    fig, _ = rr_vs_time_figure(agg)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def rr_vs_time_figure(agg: pd.DataFrame):
+    """(figure, the point labels placed on each panel) of plot_rr_vs_time."""
     panels = _panels(agg)
     mkeys = _method_keys(agg)
     colors = _color_map([lab for _, g in panels for lab, _ in _methods(g, mkeys)])
@@ -237,36 +253,72 @@ def plot_rr_vs_time(agg: pd.DataFrame, path: Path) -> Path | None:
         ax.legend(fontsize=8, loc="best")
     _suptitle(fig, "Registration recall against time")
     fig.tight_layout()
-    for col, items in labels.items():
-        _place_labels(axes[0, col], items)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    placed = [_place_labels(axes[0, col], items) for col, items in labels.items()]
+    return fig, placed
 
 
-def _place_labels(ax, items: list[tuple[tuple[float, float], str, tuple]]) -> None:
-    """Annotate points (text in the point's colour), trying a few offsets per label so that labels
-    neither overlap nor leave the axes."""
+# where a label may go around its point (points; dx, dy): near first, then further out with a leader line
+LABEL_SPOTS = [(r * math.cos(a), r * math.sin(a)) for r in (7, 16, 28, 42, 58, 76)
+               for a in np.radians((20, -20, 160, 200, 60, -60, 120, 240, 90, 270))]  # fmt: skip
+
+
+def text_box(ann, renderer):
+    """An annotation's text alone, without its leader line (Annotation's extent includes the line)."""
+    ann.update_positions(renderer)  # the offset text's place on the canvas (else it is set at draw time)
+    return matplotlib.text.Text.get_window_extent(ann, renderer)
+
+
+def _place_labels(ax, items: list[tuple[tuple[float, float], str, tuple]]) -> list:
+    """Annotate points (text in the point's colour) where the label overlaps no other label, no other
+    point and stays inside the axes: the nearest free spot of LABEL_SPOTS, tied to its point by a thin line
+    when it is not beside it; with none free, the spot that overlaps least. Returns the annotations."""
+    ax.figure.canvas.draw()  # the axes' limits as drawn (autoscaling is lazy), then held
+    ax.set_xlim(ax.get_xlim())
+    ax.set_ylim(ax.get_ylim())
     renderer = ax.figure.canvas.get_renderer()
     frame = ax.get_window_extent(renderer)
-    placed = []
-    offsets = ((5, 4, "left"), (5, -11, "left"), (-5, 4, "right"), (-5, -11, "right"), (5, 12, "left"),
-               (5, -19, "left"), (-5, 12, "right"), (-5, -19, "right"))  # fmt: skip
-    for xy, text, color in sorted(items, key=lambda it: (it[0][0], -it[0][1])):
-        kw = {"textcoords": "offset points", "fontsize": 7, "color": color}
+    points = [ax.transData.transform(xy) for xy, _, _ in items]
+    marks = [matplotlib.transforms.Bbox.from_extents(x - 4, y - 4, x + 4, y + 4) for x, y in points]
+    legend = ax.get_legend()
+    placed: list = [legend.get_window_extent(renderer)] if legend is not None else []  # and label boxes
+    out = []
+
+    def overlap(box, own: int) -> float:
+        area = 0.0
+        for k, other in enumerate(placed + marks):
+            if k - len(placed) == own:
+                continue
+            w = min(box.x1, other.x1) - max(box.x0, other.x0)
+            h = min(box.y1, other.y1) - max(box.y0, other.y0)
+            area += max(w, 0) * max(h, 0)
+        outside = box.width * box.height - max(min(box.x1, frame.x1) - max(box.x0, frame.x0), 0) * max(
+            min(box.y1, frame.y1) - max(box.y0, frame.y0), 0)  # fmt: skip
+        return area + 10 * outside
+
+    order = sorted(range(len(items)), key=lambda k: (items[k][0][0], -items[k][0][1]))
+    for k in order:
+        xy, text, color = items[k]
         best = None
-        for dx, dy, ha in offsets:
-            ann = ax.annotate(text, xy, xytext=(dx, dy), ha=ha, **kw)
-            box = ann.get_window_extent(renderer)
-            inside = frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1
-            if inside and not any(box.overlaps(p) for p in placed):
-                best = (ann, box)
+        for dx, dy in LABEL_SPOTS:
+            far = math.hypot(dx, dy) > 10
+            ann = ax.annotate(
+                text, xy, xytext=(dx, dy), textcoords="offset points", fontsize=7, color=color,
+                ha="left" if dx >= 0 else "right", va="bottom" if dy >= 0 else "top",
+                arrowprops={"arrowstyle": "-", "color": color, "lw": 0.5, "alpha": 0.7} if far else None,
+            )  # fmt: skip
+            box = text_box(ann, renderer)
+            cost = overlap(box, k)
+            if best is None or cost < best[0]:
+                if best is not None:
+                    best[1].remove()
+                best = (cost, ann, box)
+            else:
+                ann.remove()
+            if cost == 0:
                 break
-            ann.remove()
-        if best is None:  # no free spot: the first choice
-            ann = ax.annotate(text, xy, xytext=offsets[0][:2], **kw)
-            best = (ann, ann.get_window_extent(renderer))
-        placed.append(best[1])
+        placed.append(best[2])
+        out.append(best[1])
+    return out
 
 
 def plot_all(agg: pd.DataFrame, out_dir: str | Path) -> list[Path]:

@@ -90,6 +90,28 @@ def run_descriptor(choice: str, alias: str | None, model: str | None) -> str:
 
 
 OmegaConf.register_new_resolver("run_descriptor", run_descriptor, replace=True)
+
+# the parts' own keys: an override of one changes the results, so the run's name and header carry it
+PART_KEYS = ("descriptor.", "sampler.", "backend.", "graph.", "mac.")
+NAMED_ELSEWHERE = ("descriptor.model", "descriptor.alias")  # run_descriptor names the model
+
+
+def part_overrides(overrides) -> list[str]:
+    """The command line's overrides of a part's keys (sampler.scores=exact, descriptor.impl=open3d, ...)."""
+    out = []
+    for o in overrides or ():
+        key, sep, value = str(o).lstrip("+~").partition("=")
+        if sep and key.startswith(PART_KEYS) and key not in NAMED_ELSEWHERE:
+            out.append(f"{key}={value}")
+    return out
+
+
+def run_options(overrides) -> str:
+    """The part overrides in a run directory's name: _scores=exact_impl=open3d ("" for none)."""
+    return "".join("_" + o.split(".", 1)[1].replace("/", "-") for o in part_overrides(overrides))
+
+
+OmegaConf.register_new_resolver("run_options", run_options, replace=True)
 OmegaConf.register_new_resolver("run_backend", lambda b: "" if b == "cpp" else f"_{b}", replace=True)
 # What Hydra, the experiment and its trackers write before the first pair: a directory holding nothing
 # else is no run.
@@ -147,17 +169,18 @@ def main(cfg: DictConfig) -> float:
         if single and not isinstance(ours, RunLocked):  # a locked directory is another run's
             drop_if_empty(run_dir)
         sys.exit(2)
-    if single and Path(summary["run_dir"]).resolve() != run_dir.resolve():
-        drop_if_empty(run_dir, keep_log_in=Path(summary["run_dir"]))
     # One write: parallel sweep members (joblib processes) share the console, and a pipe keeps a write of
     # up to PIPE_BUF (4 KiB) bytes whole, so their summaries do not interleave.
     text = (
-        format_summary(summary)
+        format_summary({**summary, "options": part_overrides(hydra_cfg.overrides.task)})
         + f"\nresults: {summary['run_dir']}/results.parquet (and .csv, summary.json)\n"
     )
     sys.stdout.flush()
     sys.stdout.write(text)
     sys.stdout.flush()
+    append_to_log(text)
+    if single and Path(summary["run_dir"]).resolve() != run_dir.resolve():
+        drop_if_empty(run_dir, keep_log_in=Path(summary["run_dir"]))
     if summary.get("pairs", 0) and summary.get("failed", 0) == summary["pairs"]:
         log.error("every pair failed (reasons above)")
         # A single run fails; a sweep member is a measurement (e.g. random sampling at 1 % registers
@@ -165,6 +188,15 @@ def main(cfg: DictConfig) -> float:
         if single:
             sys.exit(1)
     return float(summary.get("RR", 0.0))
+
+
+def append_to_log(text: str) -> None:
+    """The console's summary into run.log as well: Hydra's file handler gets the log records only."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.flush()
+            with open(handler.baseFilename, "a", encoding="utf-8") as f:
+                f.write(text)
 
 
 def program() -> str:
@@ -305,6 +337,11 @@ def run() -> None:
         from fastmac_exp.data.cli import main as data_main
 
         sys.exit(data_main(sys.argv[2:]))
+    if "--version" in sys.argv[1:]:  # Hydra's own flag would print Hydra's version
+        from fastmac_exp import __version__
+
+        print(f"fastmac-exp {__version__} (Hydra {hydra.__version__})")
+        sys.exit(0)
     hint = check_launcher(sys.argv[1:]) or check_output_dir(sys.argv[1:]) or check_keys(sys.argv[1:])
     if not hint and {"-m", "--multirun"} & set(sys.argv[1:]):
         from fastmac_exp.run.sweep_check import check_members

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import signal
 import sys
 import traceback
@@ -20,11 +21,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
 from fastmac_exp.errors import InputError
-from fastmac_exp.geometry.metrics import summarize
+from fastmac_exp.geometry.metrics import PAIR_STAGES, summarize
 from fastmac_exp.geometry.trust import TRUST_LEVEL
 from fastmac_exp.pipeline import PairOutcome, run_pair
 from fastmac_exp.pipeline.cache import CorrespondenceCache
 from fastmac_exp.pipeline.row import PairRow
+from fastmac_exp.pipeline.stopwatch import Stopwatch
 from fastmac_exp.resources import find_file
 from fastmac_exp.run.checks import check_run_keys, run_escalates, run_ratio, run_samples
 from fastmac_exp.run.escalate_pair import StepParts, escalate_pair
@@ -105,13 +107,24 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
     cfg = comp.cfg
     row = PairRow(index=index, pair=name, **comp.labels, ratio=run_ratio(cfg), seed=int(cfg.seed),
                   protocol=str(cfg.protocol))  # fmt: skip
+    watch = Stopwatch()
     try:
         pair = comp.dataset.load(index)
+        watch.lap("load")
+        if "resolution_ms" in pair.meta:  # MAC's mesh resolution, computed inside the dataset's load
+            watch.ms["resolution"] = pair.meta["resolution_ms"]
+            watch.ms["load"] -= pair.meta["resolution_ms"]
         row.set(scene=pair.scene, family=pair.family)
         rng_seed = (cfg.seed, index)
 
         def run_step(
-            p: Pair, descriptor: Any, sampler: Any, samples: Any, alike: bool, r: PairRow
+            p: Pair,
+            descriptor: Any,
+            sampler: Any,
+            samples: Any,
+            alike: bool,
+            r: PairRow,
+            w: Stopwatch | None = None,
         ) -> PairOutcome:
             return run_pair(
                 p,
@@ -127,9 +140,10 @@ def process_pair(comp: Components, index: int, name: str) -> PairOutcome:
                 cache=comp.cache if alike else None,
                 cache_key=comp.cache.key({**comp._cache_parts, "index": index, "pair": name}),
                 samples=samples,
+                watch=w,
             )
 
-        outcome = run_step(pair, comp.descriptor, comp.sampler, run_samples(cfg), True, row)
+        outcome = run_step(pair, comp.descriptor, comp.sampler, run_samples(cfg), True, row, watch)
         if run_escalates(cfg):
             outcome = escalate_run_pair(comp, outcome, pair, run_step, row)
         return outcome
@@ -496,15 +510,15 @@ def _stage_label(stage: str, summary: dict[str, Any]) -> str:
     return f"describe ({'all' if cached == n else f'{cached} of {n}'} from the cache: original times)"
 
 
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and math.isfinite(v)
+
+
 def format_summary(summary: dict[str, Any]) -> str:
     """A short human-readable summary table."""
-    stages = ("describe", "sampling", "graph", "cliques", "selection", "pose", "total")
     s = summary
     nan = float("nan")
-    cliques_ms = s.get("median_cliques_ms")
-    if "median_pivots_ms" in s and (cliques_ms is None or cliques_ms != cliques_ms):
-        # backend=turboreg's stages (its rows have no MAC cliques / selection: NaN)
-        stages = ("describe", "sampling", "graph", "pivots", "hypotheses", "pose", "total")
+    stages = [st for st in PAIR_STAGES if _finite(s.get(f"median_{st}_ms"))]  # those the pairs went through
     scored, unscored = s.get("scored", s.get("pairs")), s.get("unscored", 0)
     if scored:
         rr = f"RR: {100 * s.get('RR', nan):.1f}%" + (f" (of the {scored} pairs with GT)" if unscored else "")
@@ -515,7 +529,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         + (f" family={','.join(s['families'])}" if s.get("families") else "")
         + f" descriptor={s.get('descriptor')} sampler={s.get('sampler')} "
         + (f"samples={s['samples']} (ratio {s['ratio']})" if s.get("samples") else f"ratio={s.get('ratio')}")
-        + f" backend={s.get('backend')} protocol={s.get('protocol')}",
+        + f" backend={s.get('backend')} protocol={s.get('protocol')}"
+        + "".join(f" {o}" for o in s.get("options") or ()),
         "  ".join(
             [f"pairs: {s.get('pairs')}"]
             + ([f"registered: {s.get('registered', 0)} of {scored}"] if scored else [])
@@ -527,6 +542,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"inlier ratio in/kept: {s.get('inlier_ratio_in', nan):.3f}/{s.get('inlier_ratio_kept', nan):.3f}",
         "median ms: "
         + "  ".join(f"{_stage_label(st, s)} {s.get(f'median_{st}_ms', nan):.1f}" for st in stages),
+        "           "
+        + (
+            f"end to end {s['median_end_to_end_ms']:.1f} (every stage)  "
+            if _finite(s.get("median_end_to_end_ms"))
+            else ""
+        )
+        + f"sampling + MAC {s.get('median_total_ms', nan):.1f} (the papers' total)",
     ]
     for u in (s.get("unscored_pairs") or [])[:3]:
         untrusted = (

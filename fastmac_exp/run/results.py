@@ -24,8 +24,9 @@ COLUMNS = [
     "protocol", "resolution", "n_in", "n_kept", "inliers_in", "inlier_ratio_in", "inlier_ratio_kept",
     "clique_size", "clique_inliers", "pose_inliers", "trusted", "confidence", "re_deg", "te_cm", "success",
     "score", "n_edges",
-    "n_cliques", "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_describe_ms",
-    "t_sampling_ms", "t_graph_ms", "t_cliques_ms", "t_selection_ms", "t_pose_ms", "t_total_ms", "error",
+    "n_cliques", "n_selected", "reduced", "search", "search_nodes", "cap_hit", "zero_filled", "t_load_ms",
+    "t_resolution_ms", "t_describe_ms", "t_sampling_ms", "t_graph_ms", "t_cliques_ms", "t_selection_ms",
+    "t_pose_ms", "t_other_ms", "t_check_ms", "t_evaluate_ms", "t_total_ms", "t_end_to_end_ms", "error",
     "pose",
 ]  # fmt: skip
 TIMING_COLUMNS = [c for c in COLUMNS if c.startswith("t_")]
