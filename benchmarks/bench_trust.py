@@ -143,7 +143,7 @@ def report(rows: list[dict], use_kiss: bool) -> None:
     print("\n| | " + " | ".join(others + ["escalation"]) + " |")
     print("|---|" + "---|" * (len(others) + 1))
     print("| pair-seeds registered | " + " | ".join(str(sum(bool(r[o]) for r in rows)) for o in others)
-          + f" | {sum(r['escalated'] for r in rows)} (trusted and right: {sum(r['escalated'] and r['trusted'] for r in rows)}) |")  # fmt: skip
+          + f" | {sum(r['escalated'] for r in rows)} (of them trusted: {sum(r['escalated'] and r['trusted'] for r in rows)}) |")  # fmt: skip
     print(f"| of {len(rows)} | " + " | ".join("" for _ in others) + " | |")
     by_step = Counter(r["step"] for r in rows)
     reg_step = Counter(r["step"] for r in rows if r["escalated"] and r["trusted"])
