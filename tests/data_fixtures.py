@@ -84,14 +84,15 @@ class FixtureServer:
                 if server.cuts.get(path, 0) > 0:
                     server.cuts[path] -= 1
                     chunk = chunk[: server.cut[path]]
-                    self.wfile.write(chunk)
+                    # counted before the write: the client may have read it all before this thread runs on
                     server.served[path] = server.served.get(path, 0) + len(chunk)
+                    self.wfile.write(chunk)
                     self.wfile.flush()
                     self.close_connection = True
                     self.connection.shutdown(socket.SHUT_WR)  # the bytes sent arrive, then EOF
                     return
-                self.wfile.write(chunk)
                 server.served[path] = server.served.get(path, 0) + len(chunk)
+                self.wfile.write(chunk)
 
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.httpd.daemon_threads = True
