@@ -17,12 +17,10 @@ from fastmac_exp.families import FIXED_RESOLUTION
 from fastmac_exp.families import family as family_record
 from fastmac_exp.geometry.offset import moved_pair, pair_offset, result_to_original
 from fastmac_exp.geometry.resolution import resolution_for
-from fastmac_exp.options import apply_options, compose_run, instantiate_part
-from fastmac_exp.params import mac_params_for
 from fastmac_exp.pipeline import register_correspondences
 from fastmac_exp.pipeline.flow import DECOY_CHOICES
 from fastmac_exp.pipeline.stopwatch import Stopwatch, registration_parts
-from fastmac_exp.run.checks import check_devices
+from fastmac_exp.plans import plan_for
 from fastmac_exp.samplers import Sampler
 from fastmac_exp.types import Correspondences, Pair, RegistrationResult
 
@@ -86,6 +84,8 @@ def register(
             max_cliques, max_nodes, max_work, max_product_work, enumerate_budget, time_limit_s;
         graph: kernel, alpha, tau, threshold (None = the family's table, fastmac_exp/params.py).
     An unknown or ambiguous name raises InputError naming what to write.
+    The configuration of a set of options is composed and built once and kept (fastmac_exp.plans): a
+    call in a loop pays only its stages.
 
     MAC's graph: from clouds it uses the clouds' mesh resolution where the family computes one (3DMatch,
     3DLoMatch: the reference code's rule); from a Correspondences set there are no clouds, so it uses the
@@ -210,15 +210,11 @@ def _register_once(
         descriptor = "fpfh"  # the default front end, by name: its options are reachable
     if isinstance(descriptor, str):
         picks["descriptor"] = descriptor
-    cfg = compose_run(picks)
-    cfg.seed = int(seed)
-    apply_options(cfg, options, tuple(picks))
-    check_devices(cfg)
+    plan = plan_for(picks, options, seed)  # composed and built once per set of options
+    cfg = plan.cfg
     rng = np.random.default_rng(seed)
-    sampler_obj = instantiate_part(cfg.sampler) if isinstance(sampler, str) else sampler
-    backend_obj = instantiate_part(cfg.backend) if isinstance(backend, str) else backend
-    graph_overrides = OmegaConf.to_container(cfg.graph, resolve=True)
-    mac_overrides = OmegaConf.to_container(cfg.mac, resolve=True)
+    sampler_obj = plan.part("sampler") if isinstance(sampler, str) else sampler
+    backend_obj = plan.part("backend") if isinstance(backend, str) else backend
     graph_key = "fpfh"
     offset = np.zeros(3)  # correspondences are moved by register_correspondences itself
     mac_resolution = FIXED_RESOLUTION  # correspondences alone: no clouds to compute it from
@@ -238,7 +234,7 @@ def _register_once(
         watch.lap("resolution")
         pair = Pair(name="register", family=family, src_cloud=prepared.src, tgt_cloud=prepared.tgt,
                     resolution=mac_resolution, voxel_size=voxel, **fam.thresholds())  # fmt: skip
-        desc = instantiate_part(cfg.descriptor) if isinstance(descriptor, str) else descriptor
+        desc = plan.part("descriptor") if isinstance(descriptor, str) else descriptor
         graph_key = desc.graph_key
         # georeferenced clouds: moved once to a frame at the pair's centre, the pose mapped back on exit
         offset = pair_offset(pair)
@@ -254,8 +250,8 @@ def _register_once(
         if prepared is None:
             raise InputError(error)
         return _failed(error, watch)
-    params = mac_params_for(family, graph_key, mac_resolution, graph_overrides, mac_overrides)
-    sample_graph = mac_params_for(family, graph_key, FIXED_RESOLUTION, graph_overrides, mac_overrides).graph
+    params = plan.params(family, graph_key, mac_resolution)
+    sample_graph = plan.params(family, graph_key, FIXED_RESOLUTION).graph
     try:
         result, _ = register_correspondences(
             corr, params, sampler_obj, backend_obj, ratio, family, rng, sample_graph=sample_graph,

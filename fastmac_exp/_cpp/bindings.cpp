@@ -445,10 +445,20 @@ nb::object radius_neighbours(const Points &points, double radius, int64_t max_nn
         nb::gil_scoped_release nogil;
         nbh = fastmac::radius_neighbours(points.data(), (int64_t)points.shape(0), radius, max_nn, num_threads);
     }
+    // packed (CSR) for Python: point i's neighbours are idx[ptr[i]:ptr[i + 1]]
+    const int64_t n = int64_t(nbh.end.size());
+    std::vector<int64_t> ptr(n + 1, 0);
+    for (int64_t i = 0; i < n; ++i) ptr[i + 1] = ptr[i] + (nbh.end[i] - nbh.ptr[i]);
+    std::vector<int32_t> idx(ptr[n]);
+    std::vector<double> d2(ptr[n]);
+    for (int64_t i = 0; i < n; ++i) {
+        std::copy(nbh.idx.begin() + nbh.ptr[i], nbh.idx.begin() + nbh.end[i], idx.begin() + ptr[i]);
+        std::copy(nbh.d2.begin() + nbh.ptr[i], nbh.d2.begin() + nbh.end[i], d2.begin() + ptr[i]);
+    }
     nb::dict d;
-    d["ptr"] = to_numpy(std::move(nbh.ptr));
-    d["idx"] = to_numpy(std::move(nbh.idx));
-    d["d2"] = to_numpy(std::move(nbh.d2));
+    d["ptr"] = to_numpy(std::move(ptr));
+    d["idx"] = to_numpy(std::move(idx));
+    d["d2"] = to_numpy(std::move(d2));
     return d;
 }
 

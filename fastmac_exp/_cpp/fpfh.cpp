@@ -33,6 +33,7 @@ using grid::sort_keyed;
 // A hit of a radius search as one integer, ordered as (squared distance, index): the bits of a
 // non-negative double order as its value, so the sort compares integers (no NaN-aware compares).
 using Hit = unsigned __int128;
+using Hits = std::vector<Hit, NoInit<Hit>>;  // resized, then written: not zeroed
 inline Hit make_hit(double d2, int32_t idx) {
     uint64_t bits;
     std::memcpy(&bits, &d2, 8);
@@ -49,8 +50,7 @@ inline int32_t hit_idx(Hit h) { return int32_t(uint32_t(h)); }
 // The `cap` nearest of a query's hits (squared distances in [0, r2)), nearest first, into the front of
 // `hits` (resized to them): a counting sort into 128 slices of [0, r2), the slices past the cap-th hit
 // dropped, then an insertion sort, which has little left to do (a few hits a slice).
-void nearest_hits(std::vector<Hit> &hits, int64_t cap, double r2, std::vector<int32_t> &bucket,
-                  std::vector<Hit> &spare) {
+void nearest_hits(Hits &hits, int64_t cap, double r2, std::vector<int32_t> &bucket, Hits &spare) {
     constexpr int kSlices = 128;
     const int64_t n = int64_t(hits.size());
     if (n < 24) {
@@ -455,9 +455,10 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
     cell_start.push_back(n);
 
     const int64_t cap = max_nn;
-    std::vector<int32_t> slot_idx(size_t(n) * cap);
-    std::vector<double> slot_d2(size_t(n) * cap);
-    std::vector<int32_t> count(n, 0);
+    out.idx.resize(size_t(n) * cap);  // uninitialised (NoInit): each query writes its own slots
+    out.d2.resize(size_t(n) * cap);
+    out.end.resize(n);
+    for (int64_t i = 0; i <= n; ++i) out.ptr[i] = i * cap;
     nthreads = resolve_threads(nthreads, n);
     DynamicRange range(0, ncell, 16);
     parallel_region(nthreads, [&](int) {
@@ -465,7 +466,7 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         // loop vectorises), then each query's hits sorted nearest first
         std::vector<double> qx, qy, qz, dd;
         std::vector<int32_t> qi;
-        std::vector<Hit> hits, spare;
+        Hits hits, spare;
         std::vector<int32_t> bucket, within;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
@@ -509,52 +510,37 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
                     nearest_hits(hits, cap, r2, bucket, spare);
                     const int64_t keep = int64_t(hits.size());
                     const int64_t i = order[s];
-                    count[i] = int32_t(keep);
+                    out.end[i] = i * cap + keep;
                     for (int64_t k = 0; k < keep; ++k) {
-                        slot_d2[size_t(i) * cap + k] = hit_d2(hits[k]);
-                        slot_idx[size_t(i) * cap + k] = hit_idx(hits[k]);
+                        out.d2[size_t(i) * cap + k] = hit_d2(hits[k]);
+                        out.idx[size_t(i) * cap + k] = hit_idx(hits[k]);
                     }
                 }
             }
         }
     });
-    for (int64_t i = 0; i < n; ++i) out.ptr[i + 1] = out.ptr[i] + count[i];
-    out.idx.resize(out.ptr[n]);
-    out.d2.resize(out.ptr[n]);
-    parallel_for(0, n, nthreads, 1024, [&](int64_t i, int) {
-        std::copy_n(&slot_idx[size_t(i) * cap], count[i], &out.idx[out.ptr[i]]);
-        std::copy_n(&slot_d2[size_t(i) * cap], count[i], &out.d2[out.ptr[i]]);
-    });
     return out;
 }
 
-Neighbours nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn) {
-    const int64_t n = int64_t(nb.ptr.size()) - 1;
+std::vector<int64_t> nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn, int nthreads) {
+    const int64_t n = int64_t(nb.end.size());
     const double r2 = radius * radius;
-    Neighbours out;
-    out.ptr.assign(n + 1, 0);
-    for (int64_t i = 0; i < n; ++i) {
+    std::vector<int64_t> ends(n);
+    parallel_for(0, n, resolve_threads(nthreads, n), 2048, [&](int64_t i, int) {
         int64_t k = nb.ptr[i];
-        const int64_t e = std::min(nb.ptr[i + 1], nb.ptr[i] + max_nn);
+        const int64_t e = std::min(nb.end[i], nb.ptr[i] + max_nn);
         while (k < e && nb.d2[k] < r2) ++k;
-        out.ptr[i + 1] = out.ptr[i] + (k - nb.ptr[i]);
-    }
-    out.idx.resize(out.ptr[n]);
-    out.d2.resize(out.ptr[n]);
-    for (int64_t i = 0; i < n; ++i) {
-        const int64_t m = out.ptr[i + 1] - out.ptr[i];
-        std::copy_n(&nb.idx[nb.ptr[i]], m, &out.idx[out.ptr[i]]);
-        std::copy_n(&nb.d2[nb.ptr[i]], m, &out.d2[out.ptr[i]]);
-    }
-    return out;
+        ends[i] = k;
+    });
+    return ends;
 }
 
-std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const double *viewpoint,
-                                int nthreads) {
+std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const int64_t *ends,
+                                const double *viewpoint, int nthreads) {
     std::vector<double> normals(3 * n);
     nthreads = resolve_threads(nthreads, n);
     parallel_for(0, n, nthreads, 512, [&](int64_t i, int) {
-        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+        const int64_t b = nb.ptr[i], e = ends[i];
         V3 nrm;
         if (e - b >= 3) {
             double c[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
@@ -603,24 +589,27 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
         for (int64_t r = 0; r < nrows; ++r) {
             const int64_t i = rows[r];
             need[i] = 1;
-            for (int64_t k = nb.ptr[i]; k < nb.ptr[i + 1]; ++k) need[nb.idx[k]] = 1;
+            for (int64_t k = nb.ptr[i]; k < nb.end[i]; ++k) need[nb.idx[k]] = 1;
         }
-    std::vector<double> spfh(size_t(n) * 33, 0.0);
+    // rows not needed are never read: left unset (NoInit), the others zeroed by the thread that fills them
+    std::vector<double, NoInit<double>> spfh(size_t(n) * 33);
     DynamicRange spfh_range(0, n, 256);
     parallel_region(nthreads, [&](int) {
         PairScratch w;
         int64_t lo, hi;
         while (spfh_range.next(lo, hi))
             for (int64_t i = lo; i < hi; ++i) {
-                const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
-                if (!need[i] || e - b <= 1) continue;
+                if (!need[i]) continue;
+                std::fill_n(&spfh[size_t(i) * 33], 33, 0.0);
+                const int64_t b = nb.ptr[i], e = nb.end[i];
+                if (e - b <= 1) continue;
                 spfh_of(points, normals, i, &nb.idx[b + 1], e - b - 1, w, &spfh[size_t(i) * 33]);
             }
     });
     std::vector<double> out(size_t(nrows) * 33, 0.0);
     parallel_for(0, nrows, nthreads, 256, [&](int64_t r, int) {
         const int64_t i = rows ? rows[r] : r;
-        const int64_t b = nb.ptr[i], e = nb.ptr[i + 1];
+        const int64_t b = nb.ptr[i], e = nb.end[i];
         if (e - b <= 1) return;
         double *f = &out[size_t(r) * 33];
         double sum[3] = {0.0, 0.0, 0.0};
@@ -674,10 +663,13 @@ std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double nor
     }
     const Neighbours fn = radius_neighbours(kp.data(), n, feature_radius, feature_max_nn, nthreads);
     if (!given) {
-        const Neighbours nn = normal_radius <= feature_radius && normal_max_nn <= feature_max_nn
-                                  ? nearest_prefix(fn, normal_radius, normal_max_nn)
-                                  : radius_neighbours(kp.data(), n, normal_radius, normal_max_nn, nthreads);
-        nin = pca_normals(kp.data(), n, nn, viewpoint, nthreads);
+        if (normal_radius <= feature_radius && normal_max_nn <= feature_max_nn) {
+            const std::vector<int64_t> ends = nearest_prefix(fn, normal_radius, normal_max_nn, nthreads);
+            nin = pca_normals(kp.data(), n, fn, ends.data(), viewpoint, nthreads);
+        } else {
+            const Neighbours nn = radius_neighbours(kp.data(), n, normal_radius, normal_max_nn, nthreads);
+            nin = pca_normals(kp.data(), n, nn, nn.end.data(), viewpoint, nthreads);
+        }
     }
     std::vector<double> feat =
         fpfh_features(kp.data(), nin.data(), n, fn, rows ? sel.data() : nullptr, rows ? nrows : n, nthreads);

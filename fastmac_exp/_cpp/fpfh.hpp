@@ -5,6 +5,9 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
+#include <new>
+#include <utility>
 #include <vector>
 
 namespace fastmac {
@@ -17,24 +20,49 @@ namespace fastmac {
 // than 2^21 voxels along an axis.
 std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads);
 
+// A std::allocator that leaves new elements uninitialised (no memset of storage that is written before it
+// is read).
+template <class T>
+struct NoInit : std::allocator<T> {
+    template <class U>
+    struct rebind {
+        using other = NoInit<U>;
+    };
+    NoInit() = default;
+    template <class U>
+    NoInit(const NoInit<U> &) noexcept {}
+    template <class U>
+    void construct(U *p) noexcept {
+        ::new (static_cast<void *>(p)) U;
+    }
+    template <class U, class... A>
+    void construct(U *p, A &&...a) {
+        ::new (static_cast<void *>(p)) U(std::forward<A>(a)...);
+    }
+};
+
 // Neighbourhoods of a cloud within a radius, as Open3D's hybrid search returns them: the points with squared
 // distance < radius^2 (the query itself included), nearest first (ties: lower index), at most max_nn.
+// Point i's are idx/d2[ptr[i], end[i]): radius_neighbours gives each point max_nn slots (ptr[i] = i max_nn),
+// written in place by the search, so nothing is zeroed or compacted; the slots past end[i] are unset.
 struct Neighbours {
-    std::vector<int64_t> ptr;  // n + 1 offsets
-    std::vector<int32_t> idx;
-    std::vector<double> d2;
+    std::vector<int64_t> ptr;  // n + 1: where each point's neighbours start (ptr[n]: the storage's size)
+    std::vector<int64_t> end;  // n: where they end
+    std::vector<int32_t, NoInit<int32_t>> idx;
+    std::vector<double, NoInit<double>> d2;
 };
 Neighbours radius_neighbours(const double *points, int64_t n, double radius, int64_t max_nn, int nthreads);
 
-// The neighbourhoods of a smaller radius and count from those of a larger one (their nearest-first prefixes):
-// the same lists as radius_neighbours(radius, max_nn) when radius <= nb's radius and max_nn <= nb's max_nn.
-Neighbours nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn);
+// The ends of the neighbourhoods of a smaller radius and count within those of a larger one (their
+// nearest-first prefixes): with nb's starts, the same lists as radius_neighbours(radius, max_nn) when
+// radius <= nb's radius and max_nn <= nb's max_nn.
+std::vector<int64_t> nearest_prefix(const Neighbours &nb, double radius, int64_t max_nn, int nthreads);
 
-// Unit normals from the neighbourhoods (PCA: the eigenvector of the smallest eigenvalue of the covariance
-// of >= 3 neighbours, else (0, 0, 1)), flipped towards `viewpoint` when it is given (Open3D's
-// orient_normals_towards_camera_location); n x 3.
-std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const double *viewpoint,
-                                int nthreads);
+// Unit normals from the neighbourhoods idx[ptr[i], ends[i]) of nb (PCA: the eigenvector of the smallest
+// eigenvalue of the covariance of >= 3 neighbours, else (0, 0, 1)), flipped towards `viewpoint` when it is
+// given (Open3D's orient_normals_towards_camera_location); n x 3.
+std::vector<double> pca_normals(const double *points, int64_t n, const Neighbours &nb, const int64_t *ends,
+                                const double *viewpoint, int nthreads);
 
 // Open3D's FPFH (33 bins: 11 for each of the three pair angles) of the rows `rows` (all when null) of a
 // cloud with normals, from the neighbourhoods `nb` of the feature radius; rows x 33, row-major. SPFH is

@@ -57,6 +57,7 @@ from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
 from fastmac_exp.descriptors.onnx_descriptor import open_session, resolve_model_path
 from fastmac_exp.descriptors.patches import MIN_POINTS, CylinderGrid, keypoints, voxel_down
+from fastmac_exp.descriptors.progress import keypoint_bar
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 from fastmac_exp.types import Correspondences, Pair
@@ -811,8 +812,6 @@ class BufferDescriptor(FeatureDescriptor):
 
     def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
         """Describes the keypoints `kp[todo]` into `entry` (unit rows); the stage seconds."""
-        from tqdm import tqdm
-
         p = model.params
         sel = kp[todo]
         axes = None
@@ -843,9 +842,7 @@ class BufferDescriptor(FeatureDescriptor):
                 patch = patch @ align_rotations(axes[s : s + bs])
             return group_cells(patch / p.des_r, p)
 
-        bar = tqdm(
-            total=m, desc=f"BUFFER {what}", unit="kp", leave=False, disable=not self.progress or m < bs * 4
-        )
+        bar = keypoint_bar(m, f"BUFFER {what}", self.progress, bs)
         t_prep = t_run = 0.0
         # numpy prepares the next batch while onnxruntime runs this one (both release the GIL)
         with ThreadPoolExecutor(max_workers=1) as pool:

@@ -57,6 +57,7 @@ from fastmac_exp.descriptors.buffer import (
 from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
 from fastmac_exp.descriptors.patches import CylinderGrid, voxel_down
 from fastmac_exp.descriptors.patches import keypoints as voxel_keypoints
+from fastmac_exp.descriptors.progress import keypoint_bar
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 
@@ -369,14 +370,10 @@ class SpinNetDescriptor(BufferDescriptor):
         return patch
 
     def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
-        from tqdm import tqdm
-
         p = model.params
         sel = kp[todo]
         m, bs = len(sel), self.batch_size
-        bar = tqdm(
-            total=m, desc=f"SpinNet {what}", unit="kp", leave=False, disable=not self.progress or m < bs * 4
-        )
+        bar = keypoint_bar(m, f"SpinNet {what}", self.progress, bs)
         t_prep = t_run = 0.0
         for s in range(0, m, bs):
             ta = time.perf_counter()

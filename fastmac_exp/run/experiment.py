@@ -46,7 +46,9 @@ class Components:
         ds_cfg = OmegaConf.to_container(cfg.dataset, resolve=True)
         self.limit = cfg.get("limit")
         self.dataset = instantiate(cfg.dataset)
-        self.descriptor = instantiate(cfg.descriptor)
+        # progress=false silences the descriptor's per-keypoint bar too (not a key of the cache's)
+        quiet = {"progress": False} if not cfg.get("progress", True) and "progress" in cfg.descriptor else {}
+        self.descriptor = instantiate(cfg.descriptor, **quiet)
         front_end_for = getattr(self.dataset, "front_end_for", None)  # dataset=3dmatch|3dlomatch|kitti
         if front_end_for is not None:
             self.descriptor = front_end_for(self.descriptor)  # what the data hold picks the front end
@@ -230,7 +232,8 @@ def _work(args: tuple[int, str]) -> PairOutcome:
 def _progress(total: int, enabled: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, disable=not enabled, unit="pair", dynamic_ncols=True)
+    # disable=None: no bar where stderr is not a terminal (a log would get a carriage-return line a pair)
+    return tqdm(total=total, disable=None if enabled else True, unit="pair", dynamic_ncols=True)
 
 
 def run_experiment(
