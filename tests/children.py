@@ -8,6 +8,8 @@ holds a row, or until the child has spent some CPU time (what it has done, not h
 
 from __future__ import annotations
 
+import errno
+import os
 import signal
 import subprocess
 import sys
@@ -52,6 +54,29 @@ def wait_until(done: Callable[[], bool], proc: subprocess.Popen, what: str) -> N
 
 def has_rows(path: Path, n: int = 1) -> Callable[[], bool]:
     return lambda: path.exists() and len(path.read_text().splitlines()) >= n
+
+
+class FifoReader:
+    """Tells when a process has opened a FIFO for reading (it then waits on it) by opening the write end
+    without blocking, which fails while there is no reader; that end stays open (nothing written), so the
+    reader waits in read() until the signal. Call close() after."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.fd = path, None
+
+    def __call__(self) -> bool:
+        if self.fd is None:
+            try:
+                self.fd = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError as e:
+                if e.errno != errno.ENXIO:  # ENXIO: no reader yet
+                    raise
+        return self.fd is not None
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
 
 
 def spent(proc: subprocess.Popen, cpu_s: float) -> Callable[[], bool]:

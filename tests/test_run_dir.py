@@ -18,7 +18,7 @@ import pytest
 
 from fastmac_exp.run.results import read_rows
 from fastmac_exp.run.runlock import LOCK_NAME, RunLock
-from tests.children import HANG_S, has_rows, popen, wait_until
+from tests.children import HANG_S, FifoReader, has_rows, popen, wait_until
 from tests.test_cli import REPO, _blob_pair, _default_run_dir, run
 
 
@@ -120,18 +120,29 @@ def _second_pair_blocks(tmp: Path) -> list[str]:
     return ["dataset=pairs", f"dataset.source=[{src},{fifo}]", f"dataset.target=[{tgt},{fifo}]"]
 
 
+def _blocked_after_first_row(proc: subprocess.Popen, run_dir: Path, fifo: Path) -> FifoReader:
+    """Waits until the run has written the first pair's row and waits reading the second pair's FIFO."""
+    reader = FifoReader(fifo)
+    wait_until(has_rows(run_dir / "results.jsonl"), proc, "the first row")
+    wait_until(reader, proc, "the second pair's read")
+    return reader
+
+
 def _signal_after_first_row(sig: int, run_dir: Path, *overrides: str) -> tuple[int, str]:
     cmd = [sys.executable, "run.py", "progress=false", f"hydra.run.dir={run_dir}", *overrides]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    reader = None
     try:
-        wait_until(has_rows(run_dir / "results.jsonl"), proc, "the first row")
+        reader = _blocked_after_first_row(proc, run_dir, run_dir.parent / "blocks.npy")
         workers = subprocess.run(
             ["pgrep", "-P", str(proc.pid)], capture_output=True, text=True
         ).stdout.split()
         proc.send_signal(sig)
         out = proc.communicate(timeout=HANG_S)[0]
     finally:
+        if reader is not None:
+            reader.close()
         if proc.poll() is None:
             proc.kill()
     for pid in workers:  # ended with the run: gone, or a zombie waiting for init to reap it
@@ -176,11 +187,14 @@ def test_ctrl_c_before_the_first_pair_leaves_no_run_directory(tmp_path):
            f"dataset.source={fifo}", f"dataset.target={fifo}"]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    reader = FifoReader(fifo)
     try:
-        wait_until((run_dir / "config.yaml").exists, proc, "config.yaml")
+        wait_until(reader, proc, "the pair's read")  # past the start-up: config.yaml, the trackers
+        assert (run_dir / "config.yaml").exists()
         proc.send_signal(signal.SIGINT)
         out = proc.communicate(timeout=HANG_S)[0]
     finally:
+        reader.close()
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, out[-2000:]
@@ -224,11 +238,14 @@ def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_it
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     log = run_dir / "results.jsonl"
+    reader = None
     try:
-        wait_until(has_rows(log), proc, "the first row")
+        reader = _blocked_after_first_row(proc, run_dir, tmp_path / "blocks.npy")
         proc.send_signal(signal.SIGTERM)
         out = proc.communicate(timeout=HANG_S)[0]
     finally:
+        if reader is not None:
+            reader.close()
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, out[-2000:]
