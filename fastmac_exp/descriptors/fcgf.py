@@ -25,7 +25,7 @@ from fastmac_exp.descriptors.fcgf_onnx import onnx_feeds
 from fastmac_exp.descriptors.fcgf_plan import NetConfig
 from fastmac_exp.descriptors.keypoints import clean_points, require_keypoints
 from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
-from fastmac_exp.descriptors.onnx_descriptor import open_session
+from fastmac_exp.descriptors.onnx_descriptor import SessionPickling, open_session
 from fastmac_exp.errors import InputError
 from fastmac_exp.resources import data_home
 from fastmac_exp.types import Correspondences, Pair
@@ -74,7 +74,7 @@ def convert(checkpoint, path: Path) -> Path:
     return path
 
 
-class FcgfDescriptor(FeatureDescriptor):
+class FcgfDescriptor(SessionPickling, FeatureDescriptor):
     """FCGF's ResUNetBN2C from a published checkpoint (module docstring).
 
     `checkpoint`: the .pth (None: $FCGF_CHECKPOINT; neither: InputError saying how). `sha256`: accept a
@@ -162,14 +162,6 @@ class FcgfDescriptor(FeatureDescriptor):
         self.metadata = dict(meta)
         self.input_names = [i.name for i in sess.get_inputs()]
         self._session = sess
-
-    def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
-        state = self.__dict__.copy()
-        state["_session"] = None
-        return state
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
 
     def keypoints(
         self, points: np.ndarray, voxel: float, what: str = "cloud"

@@ -138,7 +138,20 @@ def _fixed(d) -> int | None:
     return d if isinstance(d, int) else None
 
 
-class OnnxDescriptor(FeatureDescriptor):
+class SessionPickling:
+    """onnxruntime sessions do not pickle (joblib launchers): a copy travels without its `_session`, which
+    is opened again on first use."""
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_session"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
+
+class OnnxDescriptor(SessionPickling, FeatureDescriptor):
     """Learned local descriptors from an ONNX model (default: the shipped fastmac_exp/models/fcgf_lite.onnx).
 
     Keypoints are the voxel-downsampled cloud (the pair's voxel size unless `voxel_size` is given),
@@ -288,14 +301,6 @@ class OnnxDescriptor(FeatureDescriptor):
             )
         self.input_name = ins[0].name
         self.output_dim = _fixed(outs[0].shape[1])
-
-    def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
-        state = self.__dict__.copy()
-        state["_session"] = None
-        return state
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
 
     # -- inference
 
