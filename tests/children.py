@@ -46,6 +46,8 @@ def wait_until(done: Callable[[], bool], proc: subprocess.Popen, what: str) -> N
     end = time.monotonic() + HANG_S
     while not done():
         if proc.poll() is not None:
+            if done():  # it ended between the two looks (for exits_within_cpu, the very thing waited for)
+                return
             raise AssertionError(f"the child exited ({proc.returncode}) before {what}")
         if time.monotonic() > end:
             raise AssertionError(f"the child hung: still no {what} after {HANG_S:.0f} s")
