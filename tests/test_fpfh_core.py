@@ -360,3 +360,31 @@ def test_voxel_keypoints_drop_non_finite_rows():
     kp, _ = fpfh_features(bad, 0.05, impl="core")
     ref, _ = fpfh_features(pts[keep], 0.05, impl="open3d")
     np.testing.assert_array_equal(kp[np.lexsort(kp.T)], ref[np.lexsort(ref.T)])
+
+
+# -- counts within a radius (the trust test's chance) ------------------------------------------------------
+
+
+@pytest.mark.parametrize("case", ["scan", "lattice", "huge_radius", "far_queries"])
+def test_count_within_equals_a_kd_tree(case):
+    rng = np.random.default_rng(12)
+    lattice = np.stack(np.meshgrid(*[np.arange(6.0)] * 3), -1).reshape(-1, 3)
+    pts, queries, r = {
+        "scan": (scan(13, 6000), scan(14, 3000) + 0.01, 0.1),
+        # points exactly at the radius count (<=), as in cKDTree
+        "lattice": (lattice, lattice, 1.0),
+        "huge_radius": (rng.uniform(0, 1, (300, 3)), rng.uniform(0, 1, (200, 3)), 10.0),
+        "far_queries": (rng.uniform(0, 1, (300, 3)), rng.uniform(-50, 50, (400, 3)), 0.3),
+    }[case]
+    ref = cKDTree(pts).query_ball_point(queries, r, return_length=True)
+    for threads in (1, 2):
+        np.testing.assert_array_equal(core.core().count_within(queries, pts, r, num_threads=threads), ref)
+
+
+def test_count_within_refuses_bad_input_and_counts_nan_queries_zero():
+    pts = np.array([[0.0, 0, 0], [0.1, 0, 0]])
+    assert list(core.core().count_within(np.array([[np.nan, 0, 0], [0.0, 0, 0]]), pts, 0.5)) == [0, 2]
+    with pytest.raises(ValueError, match="radius"):
+        core.core().count_within(pts, pts, 0.0)
+    with pytest.raises(ValueError, match="not finite"):
+        core.core().count_within(pts, np.array([[np.inf, 0, 0]]), 0.5)

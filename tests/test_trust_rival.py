@@ -144,3 +144,24 @@ def test_rival_margin_is_the_documented_one():
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "trust.md").read_text()
     assert f"RIVAL_MARGIN = {RIVAL_MARGIN:g}" in text
+
+
+def test_chance_counter_counts_what_a_brute_force_counts(monkeypatch):
+    """lambda from the core's grid (count_within) equals the mean of a brute-force count, and the k-d tree
+    fallback (no core) gives the same."""
+    from fastmac_exp import core
+    from fastmac_exp.geometry import trust
+
+    rng = np.random.default_rng(5)
+    src, tgt = rng.uniform(0, 2, (700, 3)), rng.uniform(0, 2, (700, 3))
+    pose = _rot_z(20.0)
+    pose[:3, 3] = [0.1, -0.2, 0.05]
+    moved = src @ pose[:3, :3].T + pose[:3, 3]
+    brute = ((moved[:, None, :] - tgt[None]) ** 2).sum(-1) <= 0.15**2
+    assert ChanceCounter(src, tgt, 0.15)(pose) == pytest.approx(brute.sum(1).mean(), rel=1e-12)
+    assert ChanceCounter(src, tgt, 0.15)(pose, sources=src[:100]) == pytest.approx(
+        brute[:100].sum(1).mean() * 100 / 700, rel=1e-12
+    )
+    monkeypatch.setattr(core, "available", lambda: False)
+    fallback = trust.ChanceCounter(src, tgt, 0.15)
+    assert fallback.tree is not None and fallback(pose) == pytest.approx(brute.sum(1).mean(), rel=1e-12)

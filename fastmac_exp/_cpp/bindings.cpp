@@ -509,6 +509,18 @@ nb::object nearest_other_distances(const Points &points, int num_threads) {
     return to_numpy(std::move(d));
 }
 
+nb::object count_within(const Points &queries, const Points &points, double radius, int num_threads) {
+    if (queries.shape(1) != 3 || points.shape(1) != 3)
+        throw std::invalid_argument("count_within: queries and points must be (N, 3)");
+    std::vector<int64_t> c;
+    {
+        nb::gil_scoped_release nogil;
+        c = fastmac::count_within(queries.data(), (int64_t)queries.shape(0), points.data(),
+                                  (int64_t)points.shape(0), radius, num_threads);
+    }
+    return to_numpy(std::move(c));
+}
+
 nb::object nearest_rows_fast(const Points &a, const Points &b, int num_threads) {
     if (a.shape(1) != b.shape(1))
         throw std::invalid_argument("a and b must have the same number of columns, got " +
@@ -693,6 +705,8 @@ NB_MODULE(_mac_core, m) {
           "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions; given normals are used as they are");
     m.def("nearest_other_distances", &nearest_other_distances, "points"_a, "num_threads"_a = 0,
           "Each point's distance to its nearest other point (exact, from a grid; MAC's mesh resolution is the mean)");
+    m.def("count_within", &count_within, "queries"_a, "points"_a, "radius"_a, "num_threads"_a = 0,
+          "For each query, how many points lie within radius (squared distance <= radius^2), from a grid");
     m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
           "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
           "to float32 accuracy, rows settled in float64)");

@@ -93,4 +93,9 @@ Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t 
 // Each point's distance to its nearest other point (resolution.cpp; 0 for a repeated point).
 std::vector<double> nearest_other_distances(const double *points, int64_t n, int nthreads);
 
+// For each of m queries, how many of the n points lie within `radius` (squared distance <= radius^2;
+// within.cpp). Queries that are not finite count 0; a point that is not finite is refused.
+std::vector<int64_t> count_within(const double *queries, int64_t m, const double *points, int64_t n, double radius,
+                                  int nthreads);
+
 }  // namespace fastmac

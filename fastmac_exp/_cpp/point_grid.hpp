@@ -3,6 +3,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <utility>
@@ -52,6 +53,104 @@ inline void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
         for (const auto &e : v) tmp[count[(e.first >> shift) & 0xff]++] = e;
         v.swap(tmp);
     }
+}
+
+// A grid of cubic cells of size h over a cloud (resolution.cpp's nearest distances, within.cpp's counts):
+// the occupied cells by a dense key (x ny + y) nz + z, the points sorted by cell and stored by axis, so
+// that the cells (x, y, z0..z1) are one contiguous range of positions (run_range). build_cells returns false
+// when the cloud spans more than 2^20 cells along an axis.
+struct CellGrid {
+    double lo[3], h;
+    uint64_t nx = 0, ny = 0, nz = 0;   // extents of the dense cell key (x ny + y) nz + z
+    std::vector<uint64_t> cell_key;    // occupied cells, ascending
+    std::vector<int64_t> cell_start;   // ncell + 1
+    std::vector<double> sx, sy, sz;    // points in cell order, by axis (a run of cells is a contiguous range)
+    std::vector<int64_t> order;        // sorted position -> input index
+    std::vector<int64_t> cx;           // each input point's cell coordinates
+    // where the occupied cells of each (x, y) column start among cell_key (nx ny + 1 entries), when the
+    // columns are few enough to index densely; else a column is found by binary search
+    std::vector<int64_t> column;
+};
+
+constexpr int64_t kReach = 1;  // cells shifted so that every coordinate is >= kReach
+// The most (x, y) columns indexed densely (8 bytes each).
+constexpr uint64_t kMaxColumns = uint64_t(1) << 22;
+
+inline bool build_cells(const double *p, int64_t n, double h, const double lo[3], CellGrid &g) {
+    g.h = h;
+    for (int d = 0; d < 3; ++d) g.lo[d] = lo[d];
+    g.cx.resize(3 * n);
+    int64_t top[3] = {0, 0, 0};
+    for (int64_t i = 0; i < n; ++i) {
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor((p[3 * i + d] - lo[d]) / h) + kReach;
+            if (!(f < double(kAxisMax / 2))) return false;
+            g.cx[3 * i + d] = int64_t(f);
+            top[d] = std::max(top[d], int64_t(f));
+        }
+    }
+    // a dense key, so that the radix sort makes as few passes as the grid needs; the cells a search can
+    // reach (up to 64 rings beyond the cloud) fit in the extents, so any (x, y, z) of a search has one key
+    const uint64_t margin = 2 * 64 + 2;
+    const uint64_t nx = uint64_t(top[0]) + margin, ny = uint64_t(top[1]) + margin, nz = uint64_t(top[2]) + margin;
+    if (double(nx) * double(ny) * double(nz) >= 9e18) return false;
+    g.ny = ny, g.nz = nz;
+    std::vector<std::pair<uint64_t, int64_t>> keyed(n);
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t *c = &g.cx[3 * i];
+        keyed[i] = {(uint64_t(c[0]) * ny + uint64_t(c[1])) * nz + uint64_t(c[2]), i};
+    }
+    sort_keyed(keyed);
+    g.cell_key.clear();
+    g.cell_start.clear();
+    g.sx.resize(n), g.sy.resize(n), g.sz.resize(n);
+    g.order.resize(n);
+    for (int64_t k = 0; k < n; ++k) {
+        if (k == 0 || keyed[k].first != keyed[k - 1].first) {
+            g.cell_key.push_back(keyed[k].first);
+            g.cell_start.push_back(k);
+        }
+        const int64_t i = keyed[k].second;
+        g.order[k] = i;
+        g.sx[k] = p[3 * i], g.sy[k] = p[3 * i + 1], g.sz[k] = p[3 * i + 2];
+    }
+    g.cell_start.push_back(n);
+    g.nx = nx;
+    g.column.clear();
+    return true;
+}
+
+// The column index of the grid the search uses (none when the columns are too many).
+inline void index_columns(CellGrid &g) {
+    g.column.clear();
+    if (double(g.nx) * double(g.ny) >= double(kMaxColumns)) return;
+    const uint64_t ncol = g.nx * g.ny;
+    g.column.assign(ncol + 1, 0);
+    for (const uint64_t key : g.cell_key) ++g.column[key / g.nz + 1];
+    for (uint64_t c = 0; c < ncol; ++c) g.column[c + 1] += g.column[c];
+}
+
+// The sorted positions [s0, s1) of the points of the cells (x, y, z0..z1): consecutive keys, so one
+// contiguous range; empty when none is occupied.
+inline void run_range(const CellGrid &g, int64_t x, int64_t y, int64_t z0, int64_t z1, int64_t &s0, int64_t &s1) {
+    s0 = s1 = 0;
+    if (x < 0 || y < 0) return;
+    z0 = std::max<int64_t>(z0, 0);
+    if (z1 < z0) return;
+    const uint64_t col = uint64_t(x) * g.ny + uint64_t(y);
+    const uint64_t k0 = col * g.nz + uint64_t(z0), k1 = col * g.nz + uint64_t(z1);
+    int64_t c0, c1;
+    if (!g.column.empty()) {  // the column's few cells, walked
+        c0 = g.column[col];
+        const int64_t ce = g.column[col + 1];
+        while (c0 < ce && g.cell_key[c0] < k0) ++c0;
+        c1 = c0;
+        while (c1 < ce && g.cell_key[c1] <= k1) ++c1;
+    } else {
+        c0 = std::lower_bound(g.cell_key.begin(), g.cell_key.end(), k0) - g.cell_key.begin();
+        c1 = std::upper_bound(g.cell_key.begin() + c0, g.cell_key.end(), k1) - g.cell_key.begin();
+    }
+    if (c1 > c0) s0 = g.cell_start[c0], s1 = g.cell_start[c1];
 }
 
 }  // namespace grid

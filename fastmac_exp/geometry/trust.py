@@ -49,22 +49,28 @@ class Trust(NamedTuple):
 
 
 class ChanceCounter:
-    """lambda for any pose over one set of correspondences: the target tree is built once (a stride of at
-    most CHANCE_SAMPLE targets, its counts scaled back to all N)."""
+    """lambda for any pose over one set of correspondences (a stride of at most CHANCE_SAMPLE targets, its
+    counts scaled back to all N): counted by the C++ core's grid (count_within) where it is built, else by a
+    k-d tree built once; the two count the same (squared distance <= threshold^2)."""
 
     def __init__(self, src: np.ndarray, tgt: np.ndarray, threshold: float) -> None:
+        from fastmac_exp import core
+
         n = self.n = len(src)
         self.threshold = float(threshold)
         self.sources = src[:: max(1, n // CHANCE_SAMPLE)] if n else src
-        t_step = max(1, n // CHANCE_SAMPLE)
-        self.scale = n / max(1, len(tgt[::t_step])) if n else 0.0
-        from scipy.spatial import cKDTree  # here, not at import: `import fastmac_exp` stays light
+        self.targets = np.ascontiguousarray(tgt[:: max(1, n // CHANCE_SAMPLE)], dtype=np.float64)
+        self.scale = n / max(1, len(self.targets)) if n else 0.0
+        self._count = core.core().count_within if core.available() and n else None
+        self.tree = None
+        if n and self._count is None:
+            from scipy.spatial import cKDTree  # here, not at import: `import fastmac_exp` stays light
 
-        self.tree = cKDTree(tgt[::t_step]) if n else None
+            self.tree = cKDTree(self.targets)
 
     def __call__(self, pose: np.ndarray, sources: np.ndarray | None = None) -> float:
         """lambda under `pose`; with `sources` (a subset of the set's), the part of it those contribute."""
-        if self.tree is None:
+        if not self.n:
             return 0.0
         if sources is None:
             picked, share = self.sources, 1.0
@@ -72,8 +78,11 @@ class ChanceCounter:
             if not len(sources):
                 return 0.0
             picked, share = sources[:: max(1, len(sources) // CHANCE_SAMPLE)], len(sources) / self.n
-        moved = picked @ pose[:3, :3].T + pose[:3, 3]
-        near = self.tree.query_ball_point(moved, self.threshold, return_length=True)
+        moved = np.ascontiguousarray(picked @ pose[:3, :3].T + pose[:3, 3], dtype=np.float64)
+        if self._count is not None:
+            near = self._count(moved, self.targets, self.threshold)
+        else:
+            near = self.tree.query_ball_point(moved, self.threshold, return_length=True)
         return float(np.mean(near)) * self.scale * share
 
 
@@ -128,7 +137,8 @@ def rival_support(
     top = far[np.argsort(-scores[far], kind="stable")[:RIVALS]]
     mine = np.linalg.norm(src @ pose[:3, :3].T + pose[:3, 3] - tgt, axis=1) < threshold
     others = src[~mine], tgt[~mine]
-    counts = [explained(*others, poses[h], threshold) for h in top]
+    moved = np.einsum("hij,mj->hmi", poses[top, :3, :3], others[0]) + poses[top, None, :3, 3]
+    counts = list((np.sqrt(((moved - others[1]) ** 2).sum(axis=2)) < threshold).sum(axis=1))  # as explained()
     best = top[int(np.argmax(counts))]
     return float(max(counts)), chance(poses[best], sources=others[0])
 

@@ -1,0 +1,93 @@
+// How many points of a cloud lie within a radius of each query point (the trust test's chance count,
+// fastmac_exp/geometry/trust.py): a grid of cells of half the radius over the cloud; the queries, grouped by
+// the cell they fall in, share the candidates of the 5 x 5 x 5 cells around it, and a point counts when its
+// squared distance ((dx^2 + dy^2) + dz^2) is <= radius^2, as scipy's cKDTree.query_ball_point(...,
+// return_length=True) counts, which this replaces (one thread there, ~6 ms for 4,000 matches of a 3DMatch
+// pair at tau = 10 cm).
+#include <cmath>
+#include <cstdint>
+#include <stdexcept>
+#include <utility>
+#include <vector>
+
+#include "mac_core.hpp"
+#include "parallel.hpp"
+#include "point_grid.hpp"
+
+namespace fastmac {
+
+std::vector<int64_t> count_within(const double *queries, int64_t m, const double *points, int64_t n, double radius,
+                                  int nthreads) {
+    if (!(radius > 0) || !std::isfinite(radius)) throw std::invalid_argument("count_within: radius must be positive");
+    std::vector<int64_t> out(m, 0);
+    if (m == 0 || n == 0) return out;
+    for (int64_t i = 0; i < 3 * n; ++i)
+        if (!std::isfinite(points[i])) throw std::invalid_argument("count_within: a point is not finite");
+    constexpr int64_t reach = 2;  // cells of r / 2: the points within r of a query lie in the 5^3 around its cell
+    const double h = radius / reach, r2 = radius * radius;
+    double lo[3];
+    grid::cloud_min(points, n, lo);
+    grid::CellGrid g;
+    if (!grid::build_cells(points, n, h, lo, g))
+        throw std::invalid_argument("count_within: the cloud spans more than 2^20 cells of half the radius");
+    grid::index_columns(g);
+    int64_t top[3] = {0, 0, 0};
+    for (int64_t i = 0; i < n; ++i)
+        for (int d = 0; d < 3; ++d) top[d] = std::max(top[d], g.cx[3 * i + d]);
+    // the queries by cell; one farther than `reach` cells from every occupied cell (or not finite) counts 0
+    std::vector<std::pair<uint64_t, int64_t>> keyed;
+    std::vector<int64_t> qc(3 * m);
+    keyed.reserve(m);
+    for (int64_t i = 0; i < m; ++i) {
+        bool inside = true;
+        for (int d = 0; d < 3; ++d) {
+            const double f = std::floor((queries[3 * i + d] - lo[d]) / h) + grid::kReach;
+            inside = inside && f >= -reach && f <= double(top[d] + reach);  // false for NaN
+            qc[3 * i + d] = inside ? int64_t(f) : 0;
+        }
+        if (!inside) continue;
+        const int64_t *c = &qc[3 * i];
+        keyed.push_back({(uint64_t(c[0] + reach) * (g.ny + 2 * reach) + uint64_t(c[1] + reach)) *
+                                 (g.nz + 2 * reach) + uint64_t(c[2] + reach), i});
+    }
+    grid::sort_keyed(keyed);
+    std::vector<int64_t> group;  // where each run of queries of one cell starts
+    for (int64_t k = 0; k < int64_t(keyed.size()); ++k)
+        if (k == 0 || keyed[k].first != keyed[k - 1].first) group.push_back(k);
+    const int64_t ngroup = int64_t(group.size());
+    group.push_back(int64_t(keyed.size()));
+    nthreads = resolve_threads(nthreads, m);
+    DynamicRange range(0, ngroup, 16);
+    parallel_region(nthreads, [&](int) {
+        std::vector<double> px, py, pz;
+        int64_t g0, g1;
+        while (range.next(g0, g1))
+            for (int64_t gi = g0; gi < g1; ++gi) {
+                const int64_t *c = &qc[3 * keyed[group[gi]].second];
+                px.clear(), py.clear(), pz.clear();
+                for (int64_t dx = -reach; dx <= reach; ++dx)
+                    for (int64_t dy = -reach; dy <= reach; ++dy) {
+                        int64_t s0, s1;
+                        grid::run_range(g, c[0] + dx, c[1] + dy, c[2] - reach, c[2] + reach, s0, s1);
+                        px.insert(px.end(), g.sx.begin() + s0, g.sx.begin() + s1);
+                        py.insert(py.end(), g.sy.begin() + s0, g.sy.begin() + s1);
+                        pz.insert(pz.end(), g.sz.begin() + s0, g.sz.begin() + s1);
+                    }
+                const int64_t nc = int64_t(px.size());
+                const double *__restrict ax = px.data(), *__restrict ay = py.data(), *__restrict az = pz.data();
+                for (int64_t k = group[gi]; k < group[gi + 1]; ++k) {
+                    const int64_t i = keyed[k].second;
+                    const double x = queries[3 * i], y = queries[3 * i + 1], z = queries[3 * i + 2];
+                    int64_t cnt = 0;
+                    for (int64_t t = 0; t < nc; ++t) {
+                        const double ex = x - ax[t], ey = y - ay[t], ez = z - az[t];
+                        cnt += (ex * ex + ey * ey + ez * ez) <= r2;
+                    }
+                    out[i] = cnt;
+                }
+            }
+    });
+    return out;
+}
+
+}  // namespace fastmac
