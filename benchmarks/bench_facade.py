@@ -43,7 +43,8 @@ DENSE = ("kitti00_95_to_94", "kitti00_199_to_198", "lidar_smallgicp_source_to_ta
 
 
 def stages_ms(timings: dict[str, float]) -> float:
-    """What the stages took by their own clocks: sampling + MAC ('total'), the check (inliers and trust), the decoy."""
+    """What the stages took by their own clocks: sampling + MAC ('total'), the check (inliers and trust),
+    the decoy."""
     return timings["total"] + timings.get("check", 0.0) + timings.get("decoy", 0.0)
 
 

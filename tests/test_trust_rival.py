@@ -1,5 +1,5 @@
-"""The trust test's rival and decoy (issue 48 item 1): hand cases for each piece, the two backends' hypotheses,
-and the ambiguity the previous test could not see."""
+"""The trust test's rival and decoy (issue 48 item 1): hand cases for each piece, the two backends'
+hypotheses, and the ambiguity the previous test could not see."""
 
 from __future__ import annotations
 
