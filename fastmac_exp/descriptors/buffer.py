@@ -606,9 +606,10 @@ class BufferDescriptor(FeatureDescriptor):
     default_graph_key = "spinnet"
     # said when a run starts (run/experiment.py), until the descriptor is fast
     cost_note = (
-        "BUFFER describes a pair in about 2.5-5 s on a CPU core with INT8 and AVX512-VNNI (3DMatch / "
-        "KITTI; about 2-3x that without VNNI or in float32; the 8 default pairs: ~1 min from empty caches); "
-        "a pair in the correspondence cache is not described again; limit=N runs fewer"
+        "BUFFER describes a pair in about 1-1.5 s indoors and 2-3 s on a KITTI pair on a CPU core with INT8, "
+        "AVX512-VNNI and the config's match_keypoints=auto (about 2-3x that without VNNI or in float32, "
+        "3x with match_keypoints=0); a pair in the correspondence cache is not described again; limit=N "
+        "runs fewer"
     )
 
     def __init__(
