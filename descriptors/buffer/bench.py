@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from fastmac_exp.descriptors.buffer import BufferDescriptor  # noqa: E402
+from fastmac_exp.descriptors.buffer import BufferDescriptor, forget_described_clouds  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 BEFORE = "6333dc0"  # the code before issue 31's speed work
@@ -117,12 +117,14 @@ def speed(reps: int, threads: int, skip_before: bool = False) -> dict:
         counts, loads = {}, [os.getloadavg()[0]]
         for _ in range(reps):
             for name, make in makers.items():  # interleaved: each repeat runs every variant once
+                forget_described_clouds()  # the described clouds are the process's: none carried over
                 d = make()
                 d.model_for(pair.family)  # sessions opened outside the timing
                 t, c = time.perf_counter(), time.process_time()
                 d.features(pair.tgt_cloud, pair.voxel_size, "target", family=pair.family, scale=1.0)
                 times[name]["fragment"].append(time.perf_counter() - t)
                 times[name]["fragment_cpu"].append(time.process_time() - c)
+                forget_described_clouds()
                 d = make()
                 d.model_for(pair.family)
                 t, c = time.perf_counter(), time.process_time()
