@@ -18,6 +18,7 @@ RECIPES = [
     "descriptors/buffer/export.py",
     "descriptors/buffer/quantize.py",
     "descriptors/buffer/bench.py",
+    "descriptors/buffer/matched.py",
     "descriptors/spinnet/export.py",
     "descriptors/spinnet/bench.py",
     "descriptors/fcgf_lite/train.py",

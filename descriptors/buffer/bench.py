@@ -10,7 +10,10 @@ Speed (needs ../shared/data): per fragment, the target cloud of 3dm_redkitchen_4
 (5,208 keypoints) and of kitti00_95_to_94 (17,355 keypoints), and per pair (both clouds, as a run
 describes them). "before" describes every keypoint of both clouds in float32 (the code of 6333dc0,
 imported from `git show`); 98f33b2 and "now" describe the keypoints the pair needs (the 5,000 source
-keypoints the correspondence cap keeps, every target keypoint), "now" in float32 and in int8. The variants
+keypoints the correspondence cap keeps, every target keypoint), "now" in float32 and in int8; "matched"
+is the config's default since issue 50 (`match_keypoints: auto`, mutual: at most 1,000 / 5,000 keypoints
+of each cloud, descriptors/buffer/matched.py; its "target fragment" column still describes every keypoint,
+as `features` does). The variants
 run interleaved, each repeat on a fresh descriptor (no cloud cache carried over, the onnxruntime sessions
 opened before the clock starts); medians of `--reps`, wall and CPU seconds of the process (the patch
 preparation runs in a second thread beside onnxruntime, so CPU > wall), and the 1-minute load average.
@@ -40,7 +43,7 @@ REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from fastmac_exp.descriptors.buffer import BufferDescriptor  # noqa: E402
+from fastmac_exp.descriptors.buffer import BufferDescriptor, forget_described_clouds  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 BEFORE = "6333dc0"  # the code before issue 31's speed work
@@ -100,6 +103,9 @@ def speed(reps: int, threads: int, skip_before: bool = False) -> dict:
     )
     makers["now float32"] = lambda: BufferDescriptor(threads=threads, progress=False)
     makers["now int8"] = lambda: BufferDescriptor(threads=threads, progress=False, precision="int8")
+    makers["now int8, matched (the config's)"] = lambda: BufferDescriptor(
+        threads=threads, progress=False, precision="int8", match_keypoints="auto", mutual=True
+    )
     out = {}
     for pid, label in CASES:
         try:
@@ -111,12 +117,14 @@ def speed(reps: int, threads: int, skip_before: bool = False) -> dict:
         counts, loads = {}, [os.getloadavg()[0]]
         for _ in range(reps):
             for name, make in makers.items():  # interleaved: each repeat runs every variant once
+                forget_described_clouds()  # the described clouds are the process's: none carried over
                 d = make()
                 d.model_for(pair.family)  # sessions opened outside the timing
                 t, c = time.perf_counter(), time.process_time()
                 d.features(pair.tgt_cloud, pair.voxel_size, "target", family=pair.family, scale=1.0)
                 times[name]["fragment"].append(time.perf_counter() - t)
                 times[name]["fragment_cpu"].append(time.process_time() - c)
+                forget_described_clouds()
                 d = make()
                 d.model_for(pair.family)
                 t, c = time.perf_counter(), time.process_time()

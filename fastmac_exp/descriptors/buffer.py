@@ -54,7 +54,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fastmac_exp.descriptors.base import FeatureDescriptor
-from fastmac_exp.descriptors.matching import correspondences_from_kept_sources, match_descriptors
+from fastmac_exp.descriptors.keypoints import spread_rows
+from fastmac_exp.descriptors.matching import (
+    capped_rows,
+    correspondences_from_chosen_keypoints,
+    correspondences_from_kept_sources,
+    match_descriptors,
+)
 from fastmac_exp.descriptors.onnx_descriptor import open_session, resolve_model_path
 from fastmac_exp.descriptors.patches import MIN_POINTS, CylinderGrid, keypoints, voxel_down
 from fastmac_exp.descriptors.progress import keypoint_bar
@@ -73,6 +79,15 @@ SHIPPED_INT8 = {  # descriptors/buffer/quantize.py
     "kitti": "models/buffer_kitti_desc_int8.onnx",
 }
 PRECISIONS = ("float32", "int8")
+KEYPOINT_CHOICES = ("auto", "spread", "random")
+# match_keypoints=auto / keypoint_choice=auto, per model: the smallest count (of 1,000-5,000) from which on
+# the mutual matches kept the mean inlier ratio and the RR of every-target matching on pairs never reported
+# (descriptors/buffer/matched.py --tune, record descriptors/buffer/matched_tune.json): indoors synthetic
+# 3dmatch and 3dlomatch pairs (seed 3000), where a spread subset held at every count and a random one did
+# not; outdoors the real scans kitti00_5_to_0 and kitti00_15_to_0 (the synthetic scans, 11k keypoints where
+# a real one has 17k, kept their IR at far fewer): only 5,000 held there, a random subset ahead of a spread
+# one, which spends a LiDAR scan's keypoints on its sparse periphery (SpinNet found the same)
+MATCH_KEYPOINTS = {"3dmatch": (1000, "spread"), "kitti": (5000, "random")}
 REF_INPUTS = (
     ("normals", "tensor(float)", 2),
     ("points0", "tensor(float)", 2),
@@ -576,18 +591,25 @@ class BufferDescriptor(FeatureDescriptor):
     `buffer_int8`). `cache_clouds`: how many clouds' preparation and described keypoints are kept in
     memory (0: none), so a cloud shared by pairs is described once; the memory is the process's, shared
     by the instances (a sweep's members: its seeds describe each cloud once, the run's seed drawing only
-    the matches' cap). A pair describes only the source keypoints its correspondences keep (one-way
-    matching: the cap's random subset of the source keypoints, drawn as before) and every target
-    keypoint.
+    the matches' cap). `match_keypoints` 0: a pair describes only the source keypoints its correspondences
+    keep (one-way matching: the cap's random subset of the source keypoints, drawn as before) and every
+    target keypoint; N: at most N keypoints of each cloud are described and matched (`mutual`), chosen by
+    `keypoint_choice` ("spread": one a cell of the finest grid with at most N cells, the same in every run;
+    "random": a random subset drawn with the run's rng; "auto": the model's); `match_keypoints` "auto":
+    N by model (MATCH_KEYPOINTS).
     """
+
+    match_keypoints: int | str = 0  # class defaults: SpinNet (a subclass) chooses its own keypoints
+    keypoint_choice: str = "auto"
 
     name = "buffer"
     default_graph_key = "spinnet"
     # said when a run starts (run/experiment.py), until the descriptor is fast
     cost_note = (
-        "BUFFER describes a pair in about 2.5-5 s on a CPU core with INT8 and AVX512-VNNI (3DMatch / "
-        "KITTI; about 2-3x that without VNNI or in float32; the 8 default pairs: ~1 min from empty caches); "
-        "a pair in the correspondence cache is not described again; limit=N runs fewer"
+        "BUFFER describes a pair in about 1-1.5 s indoors and 2-3 s on a KITTI pair on a CPU core with INT8, "
+        "AVX512-VNNI and the config's match_keypoints=auto (about 2-3x that without VNNI or in float32, "
+        "3x with match_keypoints=0); a pair in the correspondence cache is not described again; limit=N "
+        "runs fewer"
     )
 
     def __init__(
@@ -611,8 +633,16 @@ class BufferDescriptor(FeatureDescriptor):
         cache_clouds: int = 8,
         execution_providers="auto",
         graph_key: str | None = None,
+        match_keypoints: int | str = 0,
+        keypoint_choice: str = "auto",
     ) -> None:
         super().__init__(graph_key)
+        self.match_keypoints = check_match_keypoints(match_keypoints)
+        if keypoint_choice not in KEYPOINT_CHOICES:
+            raise InputError(
+                f"buffer keypoint_choice must be one of {KEYPOINT_CHOICES}, got {keypoint_choice!r}"
+            )
+        self.keypoint_choice = keypoint_choice
         if precision not in PRECISIONS:
             raise InputError(f"buffer precision must be one of {PRECISIONS}, got {precision!r}")
         if axis not in (None, "ref", "pca", "none"):
@@ -895,9 +925,42 @@ class BufferDescriptor(FeatureDescriptor):
         if self.scale is None and not (pair.voxel_size and pair.voxel_size > 0):
             raise InputError(f"pair {pair.name!r} has no voxel size; set descriptor.scale for {self.name}")
         scale = self.scale_for(model, pair.voxel_size)
-        return correspondences_from_kept_sources(
-            _Bound(self, pair.family, scale), pair, rng, match_descriptors
+        bound = _Bound(self, pair.family, scale)
+        cap, how = self.match_keypoints_for(pair.family)
+        if not cap:
+            return correspondences_from_kept_sources(bound, pair, rng, match_descriptors)
+        if how == "spread":
+            choose = lambda kp, _rng: spread_rows(kp, cap)  # noqa: E731
+        else:
+            choose = lambda kp, rng: _all_if_none(capped_rows(len(kp), cap, rng), len(kp))  # noqa: E731
+        return correspondences_from_chosen_keypoints(bound, pair, rng, match_descriptors, choose)
+
+    def match_keypoints_for(self, family: str) -> tuple[int, str]:
+        """(keypoints a cloud the pair describes and matches, 0: the kept sources and every target; how they
+        are chosen, "spread" or "random")."""
+        which = self.model if self.model in MATCH_KEYPOINTS else None
+        if which is None:  # auto, or a model file of the user's: the family's model's
+            fam = FAMILIES.get(family)
+            which = fam.buffer_model if fam is not None else "3dmatch"
+        count, how = MATCH_KEYPOINTS[which]
+        cap = count if self.match_keypoints == "auto" else self.match_keypoints
+        return cap, how if self.keypoint_choice == "auto" else self.keypoint_choice
+
+
+def check_match_keypoints(value) -> int | str:
+    """`match_keypoints` as given ("auto" or a count >= 0); InputError naming the value otherwise."""
+    if value == "auto":
+        return "auto"
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+        raise InputError(
+            "buffer match_keypoints must be 'auto', 0 (every target keypoint) or a keypoint count >= 1 a "
+            f"cloud, got {value!r}"
         )
+    return int(value)
+
+
+def _all_if_none(rows: np.ndarray | None, n: int) -> np.ndarray:
+    return np.arange(n) if rows is None else rows
 
 
 class _Bound(FeatureDescriptor):

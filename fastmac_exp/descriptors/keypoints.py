@@ -94,3 +94,40 @@ def require_keypoints(
             f"{what} has {len(kp)} point(s) after voxel downsampling at {voxel} m (from {n_points}); "
             f"{who} needs at least {MIN_POINTS}. Is the voxel size right for the cloud's units?"
         )
+
+
+def spread_rows(kp: np.ndarray, cap: int, steps: int = 10) -> np.ndarray:
+    """Sorted rows of at most `cap` keypoints spread evenly over the cloud: one a cell of the finest cubic
+    grid (anchored at the keypoints' lower corner) with at most `cap` occupied cells, the keypoint nearest its
+    cell's centre (ties: the lower row). The grid size is bisected in `steps` geometric steps, so the count
+    lands a few per cent below `cap`. Every row when `cap` is not below len(kp). Deterministic: a cloud's
+    subset is the same in every pair and run, so its described rows are reused."""
+    pts = np.asarray(kp, dtype=np.float64)
+    if cap < 1:
+        raise InputError(f"a keypoint cap must be >= 1, got {cap}")
+    if len(pts) <= cap:
+        return np.arange(len(pts))
+    lower = pts.min(axis=0)
+
+    def cells(h: float) -> tuple[np.ndarray, np.ndarray]:
+        ijk = np.floor((pts - lower) / h).astype(np.int64)
+        dims = ijk.max(axis=0) + 1
+        return ijk, (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+
+    def count(h: float) -> int:
+        return len(np.unique(cells(h)[1]))
+
+    hi = float(np.ptp(pts, axis=0).max()) * 1.001 + 1e-12  # one cell holds them all
+    lo = hi / 1024
+    while count(lo) <= cap and lo > 1e-12:  # duplicates: even a fine grid holds few cells
+        hi, lo = lo, lo / 1024
+    for _ in range(steps):
+        mid = (lo * hi) ** 0.5
+        lo, hi = (mid, hi) if count(mid) > cap else (lo, mid)
+    ijk, key = cells(hi)
+    d2 = (((pts - lower) - (ijk + 0.5) * hi) ** 2).sum(axis=1)
+    order = np.lexsort((np.arange(len(pts)), d2, key))
+    ks = key[order]
+    first = np.ones(len(ks), dtype=bool)
+    first[1:] = ks[1:] != ks[:-1]
+    return np.sort(order[first])

@@ -11,6 +11,7 @@ from fastmac_exp.errors import InputError
 from fastmac_exp.types import Correspondences, Pair
 
 Matcher = Callable[[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray, np.ndarray]]
+Chooser = Callable[[np.ndarray, np.random.Generator], np.ndarray]  # (keypoints, rng) -> the rows described
 
 
 def correspondences_from_features(
@@ -23,6 +24,31 @@ def correspondences_from_features(
     voxel = descriptor.voxel_size if descriptor.voxel_size is not None else pair.voxel_size
     src_kp, src_f = descriptor.features(pair.src_cloud, voxel, what=f"pair {pair.name!r}: source cloud")
     tgt_kp, tgt_f = descriptor.features(pair.tgt_cloud, voxel, what=f"pair {pair.name!r}: target cloud")
+    return _matched(descriptor, pair, rng, match, src_kp, src_f, tgt_kp, tgt_f)
+
+
+def correspondences_from_chosen_keypoints(
+    descriptor, pair: Pair, rng: np.random.Generator, match: Matcher, choose: Chooser
+) -> Correspondences:
+    """`correspondences_from_features` on chosen keypoints of both clouds, for a descriptor that can describe
+    chosen keypoints only (`keypoints(points, voxel, what) -> (cloud, keypoints)`, `features_of(cloud,
+    keypoints, rows, what)`): each cloud's keypoints cut to the rows `choose(keypoints, rng)` (source first),
+    only those described, then matched, capped and labelled as there. With `choose` keeping every row and
+    drawing nothing from `rng`, the output is `correspondences_from_features`'."""
+    _need_clouds(descriptor, pair)
+    voxel = descriptor.voxel_size if descriptor.voxel_size is not None else pair.voxel_size
+    sides = []
+    for side, points in (("source", pair.src_cloud), ("target", pair.tgt_cloud)):
+        what = f"pair {pair.name!r}: {side} cloud"
+        cloud, kp = descriptor.keypoints(points, voxel, what)
+        rows = np.asarray(choose(kp, rng), dtype=np.int64)
+        sides += [kp[rows], descriptor.features_of(cloud, kp, rows, what)]
+    return _matched(descriptor, pair, rng, match, *sides)
+
+
+def _matched(descriptor, pair: Pair, rng, match: Matcher, src_kp, src_f, tgt_kp, tgt_f) -> Correspondences:
+    """Matched (`descriptor.mutual`), capped at `descriptor.max_correspondences` by a random subset drawn
+    with `rng`, scored 1 - distance and labelled by the pair's GT."""
     si, ti, dist = match(src_f, tgt_f, descriptor.mutual)
     keep = capped_rows(len(si), descriptor.max_correspondences, rng)
     if keep is not None:
