@@ -174,7 +174,7 @@ def test_config_and_family():
 
     with initialize_config_dir(str(REPO / "conf"), version_base=None):
         cfg = compose("config", overrides=["descriptor=spinnet"])
-    d = instantiate(cfg.descriptor)
+    d = instantiate(cfg.descriptor, precision="float32")  # int8: tests/test_spinnet_int8.py
     assert isinstance(d, SpinNetDescriptor) and d.name == "spinnet" and d.graph_key == "spinnet"
     assert d.max_keypoints is None and d.sampling is None and d.threads == 1
     assert d.model_for("3dlomatch").desc_path.name == "spinnet_3dmatch.onnx"
