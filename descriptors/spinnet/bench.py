@@ -105,24 +105,30 @@ def rotation(threads: int, precision: str, n: int = 40) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--runs",
+        nargs="+",
+        default=["float32:1", "int8:1", "int8:2"],
+        help="precision:onnxruntime threads, in order (the first is the ratios' yardstick: today's default)",
+    )
     ap.add_argument("--batch-size", type=int, default=8)
-    ap.add_argument("--precision", nargs="+", default=["float32", "int8"])
     ap.add_argument("--families", nargs="+", default=list(CLOUDS))
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    runs = [(r.split(":")[0], int(r.split(":")[1])) for r in args.runs]
     out = {
         "cpu": cpu_model(),
-        "threads": args.threads,
         "batch_size": args.batch_size,
         "load_average_at_start": os.getloadavg()[0],
         "cpus": os.cpu_count(),
         "speed": {},
     }
-    for prec in args.precision:
-        out["speed"][prec] = {fam: speed(fam, args.threads, prec, args.batch_size) for fam in args.families}
-        print(prec, json.dumps(out["speed"][prec]), flush=True)
-    first = args.precision[0]
+    for prec, threads in runs:
+        key = f"{prec}_threads{threads}"
+        out["speed"][key] = {fam: speed(fam, threads, prec, args.batch_size) for fam in args.families}
+        print(key, json.dumps(out["speed"][key]), flush=True)
+    keys = list(out["speed"])
+    first = keys[0]
     out["seconds_a_keypoint_ratio_to_" + first] = {
         prec: {
             fam: round(
@@ -132,9 +138,9 @@ def main(argv=None) -> None:
             )
             for fam in args.families
         }
-        for prec in args.precision
+        for prec in keys
     }
-    out["rotation_invariance"] = {prec: rotation(args.threads, prec) for prec in args.precision}
+    out["rotation_invariance"] = {prec: rotation(1, prec) for prec in dict(runs)}
     out["load_average_at_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))
     if args.json:

@@ -301,14 +301,16 @@ class SpinNetDescriptor(BufferDescriptor):
     indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
     model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,
     `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is
-    described once), `axis` (None: the model's; "pca" or "none" to override)."""
+    described once), `axis` (None: the model's; "pca" or "none" to override). `precision`: "float32" (the
+    exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`, descriptors/spinnet/quantize.py:
+    the point MLP's max in the C++ core, the convolutions quantised; rows labelled `spinnet_int8`)."""
 
     name = "spinnet"
     default_graph_key = "spinnet"
     cost_note = (
-        "SpinNet describes 400 keypoints a 3DMatch fragment (~40-60 s on a CPU core) and 1,000 a KITTI scan "
-        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache "
-        "is not described again"
+        "SpinNet (INT8) describes 400 keypoints a 3DMatch fragment in ~6 s and 1,000 a KITTI scan in ~8-11 s "
+        "on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for inliers; a pair "
+        "in the correspondence cache is not described again"
     )
 
     def __init__(
