@@ -9,10 +9,10 @@ Describing the keypoints of one cloud (lengths are SpinNet's, in metres, times `
 the model's reference voxel, 1 on the real indoor and LiDAR pairs):
 
 1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then at most `keypoints`
-   of them (upstream describes 5,000 random points a fragment on a GPU; on a CPU the network costs ~0.09-0.15
-   s a keypoint indoors, ~0.05-0.08 outdoors, so the defaults are 400 farthest-point-sampled keypoints a
-   fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's; `MODEL_KEYPOINTS`). Source and
-   target take the same rule, so a cloud described once serves as either;
+   of them (upstream describes 5,000 random points a fragment on a GPU; on a loaded 2-core CPU the INT8
+   network costs ~0.015 s a keypoint indoors, ~0.011 outdoors, so the defaults are 1,000 farthest-point-
+   sampled keypoints a fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's;
+   `MODEL_KEYPOINTS`). Source and target take the same rule, so a cloud described once serves as either;
 2. the patch cloud: the cloud voxel-downsampled at `downsample` (3DMatch model: 0.01 m; KITTI: none, the raw
    scan as upstream), shuffled (seeded);
 3. patch: the first `patch_points - 1` (2047) points of the shuffled cloud within `des_r` (0.3 / 2.0 m),
@@ -71,7 +71,9 @@ SAMPLINGS = ("fps", "random")
 # per model: (keypoints a cloud, sampling). Indoors farthest-point sampling covers a fragment evenly (on the 4
 # real indoor pairs 400 FPS keypoints give ~1.5x the inlier ratio of 400 random ones); on a LiDAR scan FPS
 # spends its points on the sparse periphery, and a random subset (denser near the sensor) does better
-MODEL_KEYPOINTS = {"3dmatch": (400, "fps"), "kitti": (1000, "random")}
+# 1,000 indoors since INT8 (descriptors/spinnet/keypoints.json: inlier ratio 0.19 -> 0.24 on the two pairs it
+# was chosen on, 0.081 -> 0.117 on the two held out)
+MODEL_KEYPOINTS = {"3dmatch": (1000, "fps"), "kitti": (1000, "random")}
 
 
 @dataclass(frozen=True)
@@ -295,22 +297,23 @@ class SpinNetDescriptor(BufferDescriptor):
 
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
     as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
-    many keypoints a cloud (None: the model's default, 400 indoors / 1,000 for KITTI; 0 = every voxel
-    keypoint); each costs ~0.05-0.15 s of one CPU core (descriptors/spinnet/MODEL_CARD.md). `sampling`: how
-    they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None: the model's, fps
-    indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
-    model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,
-    `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is
-    described once), `axis` (None: the model's; "pca" or "none" to override). `precision`: "float32" (the
-    exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`, descriptors/spinnet/quantize.py:
-    the point MLP's max in the C++ core, the convolutions quantised; rows labelled `spinnet_int8`)."""
+    many keypoints a cloud (None: the model's default, 1,000 indoors and for KITTI; 0 = every voxel
+    keypoint); each costs ~0.01-0.015 s of one CPU core in INT8, ~3x that in float32 (MODEL_CARD.md).
+    `sampling`: how they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None:
+    the model's, fps indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1
+    (None: the model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`,
+    `threads`, `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by
+    pairs is described once), `axis` (None: the model's; "pca" or "none" to override). `precision`:
+    "float32" (the exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`,
+    descriptors/spinnet/quantize.py: the point MLP's max in the C++ core, the convolutions quantised; rows
+    labelled `spinnet_int8`)."""
 
     name = "spinnet"
     default_graph_key = "spinnet"
     cost_note = (
-        "SpinNet (INT8) describes 400 keypoints a 3DMatch fragment in ~6 s and 1,000 a KITTI scan in ~8-11 s "
-        "on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for inliers; a pair "
-        "in the correspondence cache is not described again"
+        "SpinNet (INT8) describes 1,000 keypoints a 3DMatch fragment in ~15 s and 1,000 a KITTI scan in "
+        "~8-11 s on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for "
+        "inliers; a pair in the correspondence cache is not described again"
     )
 
     def __init__(
@@ -375,8 +378,8 @@ class SpinNetDescriptor(BufferDescriptor):
     # -- keypoints: a seeded subset of the voxel keypoints
 
     def keypoints(self, points, voxel, what="cloud", family="3dmatch"):
-        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 400 for the
-        3DMatch model, 1,000 for KITTI's), by `sampling` (None: the model's, fps / random)."""
+        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 1,000 for the
+        3DMatch model and for KITTI's), by `sampling` (None: the model's, fps / random)."""
         pts, kp = voxel_keypoints(points, voxel, what)
         which = (
             self.model
