@@ -116,7 +116,7 @@ def test_keypoint_options():
     assert len(SpinNetDescriptor(keypoints=0, progress=False).keypoints(pts, 0.1)[1]) == len(every)
     auto = SpinNetDescriptor(progress=False)
     assert len(auto.keypoints(pts, 0.05, family="3dmatch")[1]) == 1000
-    assert len(auto.keypoints(pts, 0.05, family="kitti")[1]) == 1000
+    assert len(auto.keypoints(pts, 0.05, family="kitti")[1]) == 2500
     assert np.array_equal(farthest_points(every, 20), farthest_points(every, 60)[:20])  # nested prefixes
     with pytest.raises(InputError, match="keypoints must be >= 0"):
         SpinNetDescriptor(keypoints=-1)

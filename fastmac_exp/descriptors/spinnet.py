@@ -11,7 +11,7 @@ the model's reference voxel, 1 on the real indoor and LiDAR pairs):
 1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then at most `keypoints`
    of them (upstream describes 5,000 random points a fragment on a GPU; on a loaded 2-core CPU the INT8
    network costs ~0.015 s a keypoint indoors, ~0.011 outdoors, so the defaults are 1,000 farthest-point-
-   sampled keypoints a fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's;
+   sampled keypoints a fragment for the 3DMatch model and 2,500 random ones a scan for KITTI's;
    `MODEL_KEYPOINTS`). Source and target take the same rule, so a cloud described once serves as either;
 2. the patch cloud: the cloud voxel-downsampled at `downsample` (3DMatch model: 0.01 m; KITTI: none, the raw
    scan as upstream), shuffled (seeded);
@@ -71,9 +71,10 @@ SAMPLINGS = ("fps", "random")
 # per model: (keypoints a cloud, sampling). Indoors farthest-point sampling covers a fragment evenly (on the 4
 # real indoor pairs 400 FPS keypoints give ~1.5x the inlier ratio of 400 random ones); on a LiDAR scan FPS
 # spends its points on the sparse periphery, and a random subset (denser near the sensor) does better
-# 1,000 indoors since INT8 (descriptors/spinnet/keypoints.json: inlier ratio 0.19 -> 0.24 on the two pairs it
-# was chosen on, 0.081 -> 0.117 on the two held out)
-MODEL_KEYPOINTS = {"3dmatch": (1000, "fps"), "kitti": (1000, "random")}
+# since INT8 (descriptors/spinnet/keypoints.json, chosen on some real pairs, checked on held-out ones): 1,000
+# indoors (inlier ratio 0.081 -> 0.117 on the held-out pairs against 400), 2,500 on KITTI (0.173 -> 0.288
+# against 1,000)
+MODEL_KEYPOINTS = {"3dmatch": (1000, "fps"), "kitti": (2500, "random")}
 
 
 @dataclass(frozen=True)
@@ -297,7 +298,7 @@ class SpinNetDescriptor(BufferDescriptor):
 
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
     as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
-    many keypoints a cloud (None: the model's default, 1,000 indoors and for KITTI; 0 = every voxel
+    many keypoints a cloud (None: the model's default, 1,000 indoors, 2,500 for KITTI; 0 = every voxel
     keypoint); each costs ~0.01-0.015 s of one CPU core in INT8, ~3x that in float32 (MODEL_CARD.md).
     `sampling`: how they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None:
     the model's, fps indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1
@@ -311,8 +312,8 @@ class SpinNetDescriptor(BufferDescriptor):
     name = "spinnet"
     default_graph_key = "spinnet"
     cost_note = (
-        "SpinNet (INT8) describes 1,000 keypoints a 3DMatch fragment in ~15 s and 1,000 a KITTI scan in "
-        "~8-11 s on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for "
+        "SpinNet (INT8) describes 1,000 keypoints a 3DMatch fragment in ~15 s and 2,500 a KITTI scan in "
+        "~20-30 s on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for "
         "inliers; a pair in the correspondence cache is not described again"
     )
 
@@ -379,7 +380,7 @@ class SpinNetDescriptor(BufferDescriptor):
 
     def keypoints(self, points, voxel, what="cloud", family="3dmatch"):
         """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 1,000 for the
-        3DMatch model and for KITTI's), by `sampling` (None: the model's, fps / random)."""
+        3DMatch model, 2,500 for KITTI's), by `sampling` (None: the model's, fps / random)."""
         pts, kp = voxel_keypoints(points, voxel, what)
         which = (
             self.model
