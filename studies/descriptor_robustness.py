@@ -39,9 +39,9 @@ PANELS = {
     "kitti": ("Outdoor (paper's KITTI panel)", ("kitti", "real_outdoor"), "descriptor_robustness_kitti.png"),
     "indoor": ("Indoor (3DMatch)", ("3dmatch", "real_indoor"), "descriptor_robustness_indoor.png"),
 }
-ORDER = ("fpfh", "fcgf_lite", "buffer", "buffer_int8", "spinnet")
+ORDER = ("fpfh", "fcgf_lite", "buffer", "buffer_int8", "spinnet", "spinnet_int8")
 CLAIM = "Stronger descriptors keep RR at every ratio; FCGF and FPFH lose some at 1 %"
-STRONG = ("spinnet", "buffer", "buffer_int8")
+STRONG = ("spinnet", "spinnet_int8", "buffer", "buffer_int8")
 
 
 def _descs(a) -> list[str]:

@@ -328,7 +328,7 @@ def test_contracts_refuse_other_models(tmp_path):
     helper.set_model_props(model, {"fastmac.preprocess": "buffer", "buffer.align": "none"})
     path = tmp_path / "wrong.onnx"
     onnx.save(model, str(path))
-    with pytest.raises(InputError, match=r"K = 100, the cells hold 4200"):
+    with pytest.raises(InputError, match=r"K = 100, expected 4200"):
         BufferModel(path, None, 1)
     with pytest.raises(InputError, match="Expected one float32 input"):
         check_desc_contract(session(path), path, BufferParams())

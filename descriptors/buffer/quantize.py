@@ -75,7 +75,21 @@ def synthetic_clouds(family: str, pairs: int, seed: int) -> list:
     return [ds.load(i) for i in range(pairs)]
 
 
-def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str, fuse: bool = True) -> None:
+def quantize(
+    src: Path,
+    dst: Path,
+    calib: np.ndarray,
+    input_name: str,
+    fuse: bool = True,
+    moves: tuple[str, ...] | None = None,
+    source: Path | None = None,
+    quant_format: str = "QOperator",
+    **options,
+) -> None:
+    """`src` quantised into `dst` (module docstring), the metadata of `source` (default `src`: the float
+    model the int8 one stands for) copied with its sha256. `moves`: the data-movement ops fuse_requantize
+    may look through (None: MOVES); `quant_format` "QOperator" or "QDQ" (no fusing: onnxruntime fuses a
+    QDQ graph itself); `options` go to quantize_static (e.g. nodes_to_exclude)."""
     import onnx
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
@@ -98,17 +112,19 @@ def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str, fuse: boo
             str(pre),
             str(dst),
             Reader(),
-            quant_format=QuantFormat.QOperator,
+            quant_format=getattr(QuantFormat, quant_format),
             op_types_to_quantize=["Conv"],
             per_channel=True,
             activation_type=QuantType.QUInt8,
             weight_type=QuantType.QInt8,
+            **options,
         )
-    meta = {p.key: p.value for p in onnx.load(str(src)).metadata_props}
-    meta.update({"fastmac.precision": "int8", "fastmac.quantized_from_sha256": sha256(src)})
+    source = src if source is None else source
+    meta = {p.key: p.value for p in onnx.load(str(source)).metadata_props}
+    meta.update({"fastmac.precision": "int8", "fastmac.quantized_from_sha256": sha256(source)})
     model = onnx.load(str(dst))
-    if fuse:
-        meta["fastmac.int8_fused_chains"] = str(fuse_requantize(model))
+    if fuse and quant_format == "QOperator":
+        meta["fastmac.int8_fused_chains"] = str(fuse_requantize(model, MOVES if moves is None else moves))
         onnx.checker.check_model(model)
     del model.metadata_props[:]
     for k, v in sorted(meta.items()):
@@ -119,16 +135,19 @@ def quantize(src: Path, dst: Path, calib: np.ndarray, input_name: str, fuse: boo
 MOVES = ("Slice", "Concat")  # data movement: commutes with an elementwise (de)quantisation
 
 
-def fuse_requantize(model):
+def fuse_requantize(model, moves: tuple[str, ...] = MOVES):
     """Keeps the convolution stack in uint8 (issue 31): onnxruntime's QOperator quantisation leaves each
     `QLinearConv -> DequantizeLinear -> Relu -> Slice / Concat (the azimuth's circular padding) ->
     QuantizeLinear -> QLinearConv` in float32 between the convolutions. Where the QuantizeLinear's zero
     point is 0 (it was calibrated on the Relu's non-negative output), the convolution is given that
     QuantizeLinear's scale and zero point instead: its saturation at 0 is the Relu, the padding copies
-    uint8, and the DequantizeLinear, Relu and QuantizeLinear go. The padding of the first convolution's
-    float input is quantised before it instead of after (the same values). The convolutions' weights and
-    activation scales are the calibrated ones; each output is rounded once, at the finer post-Relu scale,
-    instead of twice. Returns how many chains were rewritten; the model is changed in place."""
+    uint8, and the DequantizeLinear, Relu and QuantizeLinear go. A chain without the Relu (SpinNet's last
+    convolutions) is fused whatever the zero point: the QuantizeLinear's rounding and saturation are the
+    convolution's own. The padding of the first convolution's float input is quantised before it instead
+    of after (the same values). The convolutions' weights and activation scales are the calibrated ones;
+    each output is rounded once, at the finer post-Relu scale, instead of twice. `moves`: the data-movement
+    ops looked through (SpinNet adds its Reshape). Returns how many chains were rewritten; the model is
+    changed in place."""
     from onnx import helper
     from onnx import numpy_helper as nh
 
@@ -154,18 +173,18 @@ def fuse_requantize(model):
 
     def moves_to_one_q(start):
         """The Slice / Concat nodes from `start` to exactly one QuantizeLinear (and it), or None."""
-        frontier, moves, qs = [start], {}, {}
+        frontier, seen, qs = [start], {}, {}
         while frontier:
             for n in consumers(frontier.pop()):
-                if n.op_type in MOVES:
-                    if n.name not in moves:
-                        moves[n.name] = n
+                if n.op_type in moves:
+                    if n.name not in seen:
+                        seen[n.name] = n
                         frontier.append(n.output[0])
                 elif n.op_type == "QuantizeLinear":
                     qs[n.name] = n
                 else:
                     return None
-        return (list(moves.values()), next(iter(qs.values()))) if len(qs) == 1 else None
+        return (list(seen.values()), next(iter(qs.values()))) if len(qs) == 1 else None
 
     gone, fused = set(), 0
     for conv in list(g.node):
@@ -176,15 +195,16 @@ def fuse_requantize(model):
             continue
         (relu, *more) = consumers(dq.output[0]) or [None]
         if relu is None or more or relu.op_type != "Relu":
+            relu = None  # the no-Relu chain: the DequantizeLinear straight into the padding
+        start = dq.output[0] if relu is None else relu.output[0]
+        found = moves_to_one_q(start)
+        if found is None or (relu is not None and int(nh.to_array(init[found[1].input[2]])) != 0):
             continue
-        found = moves_to_one_q(relu.output[0])
-        if found is None or int(nh.to_array(init[found[1].input[2]])) != 0:
-            continue
-        moves, q = found
+        _, q = found
         conv.input[6], conv.input[7] = q.input[1], q.input[2]  # y_scale, y_zero_point
-        rename(relu.output[0], conv.output[0])
-        rename(q.output[0], conv.output[0] if q.input[0] == relu.output[0] else q.input[0])
-        gone.update((dq.name, relu.name, q.name))
+        rename(start, conv.output[0])
+        rename(q.output[0], conv.output[0] if q.input[0] == start else q.input[0])
+        gone.update(n.name for n in (dq, relu, q) if n is not None)
         fused += 1
     nodes = [n for n in g.node if n.name not in gone]
     # the first convolution's input: float -> Slice / Concat -> Quantize becomes Quantize -> Slice / Concat
@@ -197,7 +217,7 @@ def fuse_requantize(model):
             n = stack.pop()
             for x in n.input if n.op_type == "Concat" else n.input[:1]:
                 p = producer(x)
-                if p is not None and p.op_type in MOVES:
+                if p is not None and p.op_type in moves:
                     stack.append(p)
                 else:
                     roots.add(x)

@@ -4,10 +4,14 @@
 
 Describes a real 3DMatch fragment (redkitchen cloud_bin_0, 400 farthest-point keypoints, the default) and a
 KITTI scan (seq 00 frame 94, 1,000 random keypoints, the default) from an empty cache with onnxruntime on
-`--threads` threads: seconds a cloud, per keypoint, and the split between the patches + C++ grouping and
-the network. Then rotation invariance: the fragment and 40 of its keypoints rotated about the sensor; the
-mean cosine between a keypoint's descriptors before and after, and how often the rotated keypoint's
-descriptor is the nearest of the 40. Needs ../shared/data; a shared machine only makes it slower.
+`--threads` threads, at each `--precision` in turn in one process (float32: the published weights as exported,
+the grouped cells into the network; int8: the C++ pooling and the quantised convolutions): seconds a cloud,
+per keypoint, the network's and the preparation's part (patches + C++ grouping or pooling, on a second thread
+while the network runs: `wait_for_patches` is what the network waited for it), and the ratio to the first
+precision. Prints the CPU model and the load average before and after. Then rotation invariance at each
+precision: the fragment and 40 of its keypoints rotated about the sensor; the mean cosine between a keypoint's
+descriptors before and after, and how often the rotated keypoint's descriptor is the nearest of the 40.
+Needs ../shared/data; a shared machine only makes it slower.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -42,10 +47,22 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def speed(family: str, threads: int) -> dict:
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def speed(family: str, threads: int, precision: str, batch_size: int) -> dict:
     path, voxel = CLOUDS[family]
     pts = np.asarray(read_points(path), dtype=np.float64)
-    d = SpinNetDescriptor(threads=threads, progress=False)
+    d = SpinNetDescriptor(
+        threads=threads, progress=False, precision=precision, batch_size=batch_size, cache_clouds=0
+    )
     model = d.load(family)
     t0 = time.perf_counter()
     grid_for(model.params)
@@ -64,16 +81,17 @@ def speed(family: str, threads: int) -> dict:
         "seconds_a_keypoint": round(total / n, 4),
         "network_s_a_keypoint": round(t["network_s"] / n, 4),
         "patches_and_grouping_s_a_keypoint": round(t["patches_s"] / n, 4),
+        "wait_for_patches_s_a_keypoint": round(t["wait_for_patches_s"] / n, 4),
     }
 
 
-def rotation(threads: int, n: int = 40) -> dict:
+def rotation(threads: int, precision: str, n: int = 40) -> dict:
     path, voxel = CLOUDS["3dmatch"]
     pts = np.asarray(read_points(path), dtype=np.float64)
     kp = voxel_down(pts, voxel)
     kp = kp[np.random.default_rng(5).choice(len(kp), n, replace=False)]
     rot = random_rotation(np.random.default_rng(21))
-    d = SpinNetDescriptor(threads=threads, progress=False)
+    d = SpinNetDescriptor(threads=threads, progress=False, precision=precision)
     model = d.load("3dmatch")
     a = d.describe(model, pts, kp, 1.0)
     b = d.describe(model, pts @ rot.T, kp @ rot.T, 1.0)
@@ -87,16 +105,43 @@ def rotation(threads: int, n: int = 40) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--runs",
+        nargs="+",
+        default=["float32:1", "int8:1", "int8:2"],
+        help="precision:onnxruntime threads, in order (the first is the ratios' yardstick: today's default)",
+    )
+    ap.add_argument("--batch-size", type=int, default=8)
+    ap.add_argument("--families", nargs="+", default=list(CLOUDS))
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    runs = [(r.split(":")[0], int(r.split(":")[1])) for r in args.runs]
     out = {
-        "threads": args.threads,
+        "cpu": cpu_model(),
+        "batch_size": args.batch_size,
         "load_average_at_start": os.getloadavg()[0],
         "cpus": os.cpu_count(),
-        "speed": {fam: speed(fam, args.threads) for fam in CLOUDS},
-        "rotation_invariance": rotation(args.threads),
+        "speed": {},
     }
+    for prec, threads in runs:
+        key = f"{prec}_threads{threads}"
+        out["speed"][key] = {fam: speed(fam, threads, prec, args.batch_size) for fam in args.families}
+        print(key, json.dumps(out["speed"][key]), flush=True)
+    keys = list(out["speed"])
+    first = keys[0]
+    out["seconds_a_keypoint_ratio_to_" + first] = {
+        prec: {
+            fam: round(
+                out["speed"][first][fam]["seconds_a_keypoint"]
+                / out["speed"][prec][fam]["seconds_a_keypoint"],
+                2,
+            )
+            for fam in args.families
+        }
+        for prec in keys
+    }
+    out["rotation_invariance"] = {prec: rotation(1, prec) for prec in dict(runs)}
+    out["load_average_at_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")

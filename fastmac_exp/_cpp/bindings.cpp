@@ -614,6 +614,29 @@ nb::object spinnet_group_cells(const Floats3 &pts, const Floats2 &centres, float
     return to_numpy(std::move(out), {size_t(m), size_t(ncell * samples), 3});
 }
 
+nb::object spinnet_pool_cells(const Floats3 &pts, const Floats2 &centres, float r2, const Indices &ptr,
+                              const Shorts &cells, int64_t grid, float to_unit, float inv_h, int64_t samples,
+                              const Floats3 &rot, const Floats2 &weights) {
+    const int64_t m = (int64_t)pts.shape(0), p = (int64_t)pts.shape(1), ncell = (int64_t)centres.shape(0);
+    const int64_t azi_n = (int64_t)rot.shape(0), nf = (int64_t)weights.shape(1);
+    if (pts.shape(2) != 3 || centres.shape(1) != 3 || (int64_t)ptr.shape(0) != grid * grid * grid + 1 ||
+        rot.shape(1) != 3 || rot.shape(2) != 3 || azi_n < 1 || ncell % azi_n != 0 || p < 1 || samples < 1 ||
+        weights.shape(0) != 3 || nf < 1)
+        throw std::invalid_argument(
+            "spinnet_pool_cells: (M, P, 3) points, (C, 3) centres, g^3 + 1 pointers, (A, 3, 3) rotations, A | C, "
+            "(3, F) weights");
+    for (size_t i = 0; i < cells.shape(0); ++i)
+        if (cells.data()[i] < 0 || cells.data()[i] >= ncell)
+            throw std::invalid_argument("spinnet_pool_cells: a cell index is out of range");
+    std::vector<float> out(size_t(m * ncell * nf));
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::spinnet_pool_cells(pts.data(), m, p, centres.data(), ncell, r2, ptr.data(), cells.data(), grid,
+                                    to_unit, inv_h, samples, rot.data(), azi_n, weights.data(), nf, out.data());
+    }
+    return to_numpy(std::move(out), {size_t(m), size_t(ncell), size_t(nf)});
+}
+
 }  // namespace
 
 NB_MODULE(_mac_core, m) {
@@ -727,6 +750,9 @@ NB_MODULE(_mac_core, m) {
     m.def("spinnet_group_cells", &spinnet_group_cells, "pts"_a, "centres"_a, "r2"_a, "ptr"_a, "cells"_a, "grid"_a,
           "to_unit"_a, "inv_h"_a, "samples"_a, "rot"_a,
           "SpinNet's sphere_query + var_to_invar of aligned patches (M, cells * samples, 3)");
+    m.def("spinnet_pool_cells", &spinnet_pool_cells, "pts"_a, "centres"_a, "r2"_a, "ptr"_a, "cells"_a, "grid"_a,
+          "to_unit"_a, "inv_h"_a, "samples"_a, "rot"_a, "weights"_a,
+          "spinnet_group_cells, then each cell's max over its slots of slot @ weights (3, F): (M, cells, F)");
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },
           "Threads used when num_threads=0 (problems with fewer than serial_below rows run on one).");
     m.attr("serial_below") = fastmac::kSerialBelow;

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <stdexcept>
 #include <utility>
 #include <vector>
@@ -189,6 +190,57 @@ void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *ce
             slot[0] = r[0] * dx + r[1] * dy + r[2] * dz;
             slot[1] = r[3] * dx + r[4] * dy + r[5] * dz;
             slot[2] = r[6] * dx + r[7] * dy + r[8] * dz;
+        }
+    }
+}
+
+namespace {
+// f[k] = max(f[k], v . w[:, k]) for the nf features (w: 3 x nf, row-major)
+inline void max_features(float *f, const float v[3], const float *w, int64_t nf) {
+    for (int64_t k = 0; k < nf; ++k) f[k] = std::max(f[k], v[0] * w[k] + v[1] * w[nf + k] + v[2] * w[2 * nf + k]);
+}
+
+inline void rotate(const float *r, float dx, float dy, float dz, float v[3]) {
+    v[0] = r[0] * dx + r[1] * dy + r[2] * dz;
+    v[1] = r[3] * dx + r[4] * dy + r[5] * dz;
+    v[2] = r[6] * dx + r[7] * dy + r[8] * dz;
+}
+}  // namespace
+
+void spinnet_pool_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                        const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
+                        const float *rot, int64_t azi_n, const float *w, int64_t nf, float *out) {
+    std::vector<int64_t> count(ncell);
+    const float zero[3] = {0.0f, 0.0f, 0.0f};
+    for (int64_t j = 0; j < m; ++j) {
+        std::fill(count.begin(), count.end(), 0);
+        float *o = out + j * ncell * nf;
+        std::fill(o, o + ncell * nf, -std::numeric_limits<float>::infinity());
+        const float *base = pts + j * p * 3;
+        for (int64_t s = 0; s < p; ++s) {
+            const float *q = base + s * 3;
+            const int64_t vox = cell_voxel(q, to_unit, inv_h, g);
+            for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
+                const int64_t c = cells[t];
+                if (count[c] >= ns) continue;
+                const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
+                const float d2 = dx * dx + dy * dy + dz * dz;
+                if (d2 < r2) {
+                    float v[3];
+                    rotate(rot + 9 * (c % azi_n), dx, dy, dz, v);
+                    max_features(o + c * nf, v, w, nf);
+                    ++count[c];
+                }
+            }
+        }
+        for (int64_t c = 0; c < ncell; ++c) {
+            if (count[c] == 0) {  // ball_query's patch slot 0 in the first slot (spinnet_group_cells)
+                float v[3];
+                rotate(rot + 9 * (c % azi_n), base[0] - centres[3 * c], base[1] - centres[3 * c + 1],
+                       base[2] - centres[3 * c + 2], v);
+                max_features(o + c * nf, v, w, nf);
+            }
+            if (count[c] < ns && !(count[c] == 0 && ns == 1)) max_features(o + c * nf, zero, w, nf);  // empty slots
         }
     }
 }

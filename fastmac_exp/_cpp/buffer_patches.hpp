@@ -45,4 +45,12 @@ void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *ce
                          const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
                          const float *rot, int64_t azi_n, float *out);
 
+// spinnet_group_cells followed by SpinNet's point MLP without its bias and the max over each cell's slots,
+// without the (m x ncell x ns x 3) grouped cells: out (m x ncell x nf) = per cell the max over its ns slots of
+// slot . w (w: 3 x nf, row-major; the grouped slots as spinnet_group_cells writes them, the empty ones 0).
+// The bias commutes with the max (rounding is monotone), so adding it afterwards gives the same values.
+void spinnet_pool_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                        const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
+                        const float *rot, int64_t azi_n, const float *w, int64_t nf, float *out);
+
 }  // namespace fastmac

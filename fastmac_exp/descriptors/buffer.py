@@ -412,8 +412,10 @@ def _io_str(items) -> str:
     return ", ".join(f"{i.name!r}: {i.type} ({', '.join(str(d) for d in i.shape)})" for i in items) or "none"
 
 
-def check_desc_contract(sess, path: Path, params: BufferParams) -> tuple[str, int | None]:
-    """(input name, output dim or None); InputError when the Desc model does not fit its contract."""
+def check_desc_contract(sess, path: Path, params: BufferParams, shape=None) -> tuple[str, int | None]:
+    """(input name, output dim or None); InputError when the Desc model does not fit its contract: one
+    float32 input (M, K, C) with (K, C) = `shape` (None: the cells, (params.size, 3)), one output (M, D)."""
+    k, c = (params.size, 3) if shape is None else shape
     ins, outs = sess.get_inputs(), sess.get_outputs()
     problems = []
     if len(ins) != 1:
@@ -427,10 +429,10 @@ def check_desc_contract(sess, path: Path, params: BufferParams) -> tuple[str, in
         else:
             if isinstance(i.shape[0], int):
                 problems.append(f"input {i.name!r} has a fixed batch dimension {i.shape[0]}")
-            if isinstance(i.shape[1], int) and i.shape[1] != params.size:
-                problems.append(f"input {i.name!r} has K = {i.shape[1]}, the cells hold {params.size}")
-            if isinstance(i.shape[2], int) and i.shape[2] != 3:
-                problems.append(f"input {i.name!r} has {i.shape[2]} channels, expected 3 (xyz)")
+            if isinstance(i.shape[1], int) and i.shape[1] != k:
+                problems.append(f"input {i.name!r} has K = {i.shape[1]}, expected {k}")
+            if isinstance(i.shape[2], int) and i.shape[2] != c:
+                problems.append(f"input {i.name!r} has {i.shape[2]} channels, expected {c}")
     if len(outs) != 1:
         problems.append(f"{len(outs)} outputs")
     elif outs[0].type != "tensor(float)" or len(outs[0].shape) != 2:
@@ -438,7 +440,7 @@ def check_desc_contract(sess, path: Path, params: BufferParams) -> tuple[str, in
     if problems:
         raise InputError(
             f"BUFFER descriptor model {path} does not fit the contract ({'; '.join(problems)}). Expected one "
-            f"float32 input (M, {params.size}, 3) with M dynamic and one float32 output (M, D); found "
+            f"float32 input (M, {k}, {c}) with M dynamic and one float32 output (M, D); found "
             f"inputs [{_io_str(ins)}] and outputs [{_io_str(outs)}]"
         )
     d = outs[0].shape[1]
@@ -643,19 +645,13 @@ class BufferDescriptor(FeatureDescriptor):
                 f"buffer keypoint_choice must be one of {KEYPOINT_CHOICES}, got {keypoint_choice!r}"
             )
         self.keypoint_choice = keypoint_choice
-        if precision not in PRECISIONS:
-            raise InputError(f"buffer precision must be one of {PRECISIONS}, got {precision!r}")
         if axis not in (None, "ref", "pca", "none"):
             raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
         self._set_common(
             "buffer", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
             threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
         )  # fmt: skip
-        self.model_3dmatch_int8 = str(model_3dmatch_int8)
-        self.model_kitti_int8 = str(model_kitti_int8)
-        self.precision = precision
-        if precision == "int8":
-            self.name = "buffer_int8"
+        self._set_precision(precision, model_3dmatch_int8, model_kitti_int8)
         self.ref_model = ref_model
         if self.model != "auto":
             self.load(self.model)
@@ -695,6 +691,16 @@ class BufferDescriptor(FeatureDescriptor):
         self.last_timings: dict[str, float] = {}
         self.timings_log: list[dict] = []  # one entry a described cloud (the last 1000)
 
+    def _set_precision(self, precision: str, model_3dmatch_int8: str, model_kitti_int8: str) -> None:
+        """`precision` checked; int8 labels the rows `<name>_int8`."""
+        if precision not in PRECISIONS:
+            raise InputError(f"{self.name} precision must be one of {PRECISIONS}, got {precision!r}")
+        self.model_3dmatch_int8 = str(model_3dmatch_int8)
+        self.model_kitti_int8 = str(model_kitti_int8)
+        self.precision = precision
+        if precision == "int8":
+            self.name = f"{type(self).name}_int8"
+
     def __getstate__(self) -> dict:  # onnxruntime sessions do not pickle (joblib launchers)
         state = self.__dict__.copy()
         state["_models"] = {}
@@ -732,18 +738,22 @@ class BufferDescriptor(FeatureDescriptor):
             return resolve_model_path(named)
         except InputError as exc:
             raise InputError(
-                f"{exc}; the int8 BUFFER models are made by `python descriptors/buffer/quantize.py`"
+                f"{exc}; the int8 {self.title} models are made by `python {self.quantize_script}`"
             ) from exc
+
+    title = "BUFFER"
+    quantize_script = "descriptors/buffer/quantize.py"
+
+    def _open_model(self, path: Path) -> BufferModel:
+        return BufferModel(path, self.ref_model, self.threads, self.execution_providers)
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
-            model = BufferModel(
-                self.model_path(which), self.ref_model, self.threads, self.execution_providers
-            )
+            model = self._open_model(self.model_path(which))
             found = model.metadata.get("fastmac.precision", "float32")
             if found != self.precision:
                 raise InputError(
-                    f"BUFFER model {model.desc_path} is {found} (metadata fastmac.precision), "
+                    f"{self.title} model {model.desc_path} is {found} (metadata fastmac.precision), "
                     f"descriptor.precision is {self.precision}"
                 )
             self._models[which] = model
@@ -842,7 +852,6 @@ class BufferDescriptor(FeatureDescriptor):
 
     def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
         """Describes the keypoints `kp[todo]` into `entry` (unit rows); the stage seconds."""
-        p = model.params
         sel = kp[todo]
         axes = None
         if how == "ref" and len(sel):
@@ -852,27 +861,17 @@ class BufferDescriptor(FeatureDescriptor):
             axes[flip] *= -1
         m, bs = len(sel), self.batch_size
         starts = list(range(0, m, bs))
+        t_patches = 0.0
 
         def prepare(s: int) -> np.ndarray:
-            k = sel[s : s + bs]
-            patch = (
-                cut_patches(
-                    state.cloud,
-                    state.tree,
-                    k,
-                    p.des_r,
-                    p.patch_points,
-                    index=state.index_for(p.des_r, p.patch_points),
-                )
-                - k[:, None, :]
-            )
-            if how == "pca":
-                patch = patch @ align_rotations(pca_axes(patch, k))
-            elif axes is not None:
-                patch = patch @ align_rotations(axes[s : s + bs])
-            return group_cells(patch / p.des_r, p)
+            nonlocal t_patches  # one worker: no race
+            t = time.perf_counter()
+            k_axes = None if axes is None else axes[s : s + bs]
+            x = self._model_input(model, state, sel[s : s + bs], how, k_axes)
+            t_patches += time.perf_counter() - t
+            return x
 
-        bar = keypoint_bar(m, f"BUFFER {what}", self.progress, bs)
+        bar = keypoint_bar(m, f"{self.title} {what}", self.progress, bs)
         t_prep = t_run = 0.0
         # numpy prepares the next batch while onnxruntime runs this one (both release the GIL)
         with ThreadPoolExecutor(max_workers=1) as pool:
@@ -888,15 +887,27 @@ class BufferDescriptor(FeatureDescriptor):
                 t_run += time.perf_counter() - tb
                 if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
                     raise InputError(
-                        f"BUFFER model {model.desc_path} returned {y.shape} for {len(x)} patches, expected "
-                        f"({len(x)}, {entry.desc.shape[1]})"
+                        f"{self.title} model {model.desc_path} returned {y.shape} for {len(x)} patches, "
+                        f"expected ({len(x)}, {entry.desc.shape[1]})"
                     )
                 norm = np.linalg.norm(y, axis=1, keepdims=True)
                 entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
                 entry.done[todo[s : s + len(y)]] = True
                 bar.update(len(y))
         bar.close()
-        return {"wait_for_patches_s": t_prep, "network_s": t_run}
+        return {"wait_for_patches_s": t_prep, "network_s": t_run, "patches_s": t_patches}
+
+    def _model_input(self, model, state: CloudState, k: np.ndarray, how: str, axes) -> np.ndarray:
+        """The network's input for the keypoints `k`: their patches, aligned (`axes`: the keypoints' Ref
+        axes when `how` is "ref"), grouped into the cells."""
+        p = model.params
+        index = state.index_for(p.des_r, p.patch_points)
+        patch = cut_patches(state.cloud, state.tree, k, p.des_r, p.patch_points, index=index) - k[:, None, :]
+        if how == "pca":
+            patch = patch @ align_rotations(pca_axes(patch, k))
+        elif axes is not None:
+            patch = patch @ align_rotations(axes)
+        return group_cells(patch / p.des_r, p)
 
     def keypoints(
         self, points: np.ndarray, voxel: float, what: str = "cloud", family: str = "3dmatch"

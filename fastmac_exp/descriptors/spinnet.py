@@ -9,10 +9,10 @@ Describing the keypoints of one cloud (lengths are SpinNet's, in metres, times `
 the model's reference voxel, 1 on the real indoor and LiDAR pairs):
 
 1. keypoints: the cloud voxel-downsampled at the pair's voxel (FPFH's keypoints), then at most `keypoints`
-   of them (upstream describes 5,000 random points a fragment on a GPU; on a CPU the network costs ~0.09-0.15
-   s a keypoint indoors, ~0.05-0.08 outdoors, so the defaults are 400 farthest-point-sampled keypoints a
-   fragment for the 3DMatch model and 1,000 random ones a scan for KITTI's; `MODEL_KEYPOINTS`). Source and
-   target take the same rule, so a cloud described once serves as either;
+   of them (upstream describes 5,000 random points a fragment on a GPU; on a loaded 2-core CPU the INT8
+   network costs ~0.015 s a keypoint indoors, ~0.011 outdoors, so the defaults are 1,000 farthest-point-
+   sampled keypoints a fragment for the 3DMatch model and 2,500 random ones a scan for KITTI's;
+   `MODEL_KEYPOINTS`). Source and target take the same rule, so a cloud described once serves as either;
 2. the patch cloud: the cloud voxel-downsampled at `downsample` (3DMatch model: 0.01 m; KITTI: none, the raw
    scan as upstream), shuffled (seeded);
 3. patch: the first `patch_points - 1` (2047) points of the shuffled cloud within `des_r` (0.3 / 2.0 m),
@@ -32,6 +32,7 @@ one float32 output `(M, D)`; metadata `fastmac.preprocess = spinnet` and the `sp
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -46,7 +47,6 @@ from fastmac_exp.descriptors.buffer import (
     BufferDescriptor,
     CellTable,
     CloudState,
-    Described,
     _core,
     _session,
     align_rotations,
@@ -54,21 +54,27 @@ from fastmac_exp.descriptors.buffer import (
     cut_patches,
     pca_axes,
 )
-from fastmac_exp.descriptors.onnx_descriptor import resolve_model_path
 from fastmac_exp.descriptors.patches import CylinderGrid, voxel_down
 from fastmac_exp.descriptors.patches import keypoints as voxel_keypoints
-from fastmac_exp.descriptors.progress import keypoint_bar
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
 
 log = logging.getLogger(__name__)
 
 SHIPPED = {"3dmatch": "models/spinnet_3dmatch.onnx", "kitti": "models/spinnet_kitti.onnx"}
+SHIPPED_INT8 = {  # descriptors/spinnet/quantize.py
+    "3dmatch": "models/spinnet_3dmatch_int8.onnx",
+    "kitti": "models/spinnet_kitti_int8.onnx",
+}
+INPUTS = ("cells", "pooled")  # the model's input: the grouped cells, or their max-pooled point features
 SAMPLINGS = ("fps", "random")
 # per model: (keypoints a cloud, sampling). Indoors farthest-point sampling covers a fragment evenly (on the 4
 # real indoor pairs 400 FPS keypoints give ~1.5x the inlier ratio of 400 random ones); on a LiDAR scan FPS
 # spends its points on the sparse periphery, and a random subset (denser near the sensor) does better
-MODEL_KEYPOINTS = {"3dmatch": (400, "fps"), "kitti": (1000, "random")}
+# since INT8 (descriptors/spinnet/keypoints.json, chosen on some real pairs, checked on held-out ones): 1,000
+# indoors (inlier ratio 0.081 -> 0.117 on the held-out pairs against 400), 2,500 on KITTI (0.173 -> 0.288
+# against 1,000)
+MODEL_KEYPOINTS = {"3dmatch": (1000, "fps"), "kitti": (2500, "random")}
 
 
 @dataclass(frozen=True)
@@ -173,6 +179,37 @@ def group_cells(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
     )
 
 
+def pool_cells(aligned: np.ndarray, p: SpinNetParams, weights: np.ndarray) -> np.ndarray:
+    """The input of a "pooled" model: per keypoint and cell the max over the cell's `samples` slots of
+    slot @ `weights` (3, F), `(M, cells, F)` float32 (group_cells followed by the point MLP's product and the
+    max over the samples, without the 10 MB a keypoint of grouped cells; the bias is added in the model, after
+    the max, which it commutes with). Needs the C++ core for speed."""
+    g = grid_for(p)
+    w = np.ascontiguousarray(weights, dtype=np.float32)
+    core = _core()
+    if core is None or not hasattr(core, "spinnet_pool_cells"):
+        return pool_cells_numpy(aligned, p, w)
+    return core.spinnet_pool_cells(
+        np.ascontiguousarray(aligned, dtype=np.float32),
+        g.centres,
+        float(g.r2),
+        g.table.ptr,
+        g.table.cells,
+        g.table.g,
+        float(np.float32(1.0 / p.des_r)),
+        float(np.float32(1.0 / g.table.h)),
+        p.samples,
+        g.rotations,
+        w,
+    )
+
+
+def pool_cells_numpy(aligned: np.ndarray, p: SpinNetParams, weights: np.ndarray) -> np.ndarray:
+    """`pool_cells` from `group_cells_numpy` (the reference of the C++ kernel; slow)."""
+    cells = group_cells_numpy(aligned, p).reshape(len(aligned), p.cells, p.samples, 3)
+    return (cells @ np.asarray(weights, dtype=np.float32)).max(axis=2)
+
+
 def group_cells_numpy(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
     """`group_cells` in numpy, brute force over the cells (the reference of the C++ kernel; slow)."""
     g = grid_for(p)
@@ -218,7 +255,9 @@ def farthest_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
 
 class SpinNetModel:
     """One family's SpinNet session, its parameters and contract (the attributes BufferDescriptor.describe
-    reads: desc_path, params, ref, output_dim)."""
+    reads: desc_path, params, ref, output_dim). `pooled`: the model takes `pool_cells`'s input (metadata
+    `spinnet.input = pooled`, the point MLP's product `spinnet.point_weights`; descriptors/spinnet/
+    quantize.py), else the grouped cells."""
 
     ref = None
     ref_path = None
@@ -233,7 +272,25 @@ class SpinNetModel:
             )
         self.params = SpinNetParams.from_metadata(meta, str(path))
         self.metadata = dict(meta)
-        self.input_name, self.output_dim = check_desc_contract(self.desc, path, self.params)
+        kind = meta.get("spinnet.input", "cells")
+        if kind not in INPUTS:
+            raise InputError(f"model {path}: metadata spinnet.input={kind!r}, expected one of {INPUTS}")
+        self.pooled = kind == "pooled"
+        self.point_weights = None
+        if self.pooled:
+            try:
+                w = np.asarray(json.loads(meta["spinnet.point_weights"]), dtype=np.float32)
+            except (KeyError, ValueError, TypeError) as exc:
+                raise InputError(
+                    f"model {path}: a pooled SpinNet model needs spinnet.point_weights, a (3, F) list ({exc})"
+                ) from exc
+            if w.ndim != 2 or w.shape[0] != 3 or w.shape[1] < 1:
+                raise InputError(f"model {path}: spinnet.point_weights has shape {w.shape}, expected (3, F)")
+            self.point_weights = w
+            shape = (self.params.cells, w.shape[1])
+        else:
+            shape = (self.params.size, 3)
+        self.input_name, self.output_dim = check_desc_contract(self.desc, path, self.params, shape)
 
 
 class SpinNetDescriptor(BufferDescriptor):
@@ -241,20 +298,23 @@ class SpinNetDescriptor(BufferDescriptor):
 
     `model`: "auto" (the pair's family picks `model_3dmatch` for 3dmatch/3dlomatch, `model_kitti` for kitti,
     as for BUFFER), "3dmatch", "kitti" or the path of a model meeting the contract. `keypoints`: at most this
-    many keypoints a cloud (None: the model's default, 400 indoors / 1,000 for KITTI; 0 = every voxel
-    keypoint); each costs ~0.05-0.15 s of one CPU core (descriptors/spinnet/MODEL_CARD.md). `sampling`: how
-    they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None: the model's, fps
-    indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1 (None: the
-    model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`, `threads`,
-    `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by pairs is
-    described once), `axis` (None: the model's; "pca" or "none" to override)."""
+    many keypoints a cloud (None: the model's default, 1,000 indoors, 2,500 for KITTI; 0 = every voxel
+    keypoint); each costs ~0.01-0.015 s of one CPU core in INT8, ~3x that in float32 (MODEL_CARD.md).
+    `sampling`: how they are chosen among the voxel keypoints, "fps" (farthest points) or "random" (None:
+    the model's, fps indoors, random for KITTI). `downsample`: the patch cloud's grid in metres at scale 1
+    (None: the model's). The rest as BUFFER's: `voxel_size`, `scale`, `max_correspondences`, `mutual`,
+    `threads`, `batch_size`, `execution_providers`, `seed`, `progress`, `cache_clouds` (a cloud shared by
+    pairs is described once), `axis` (None: the model's; "pca" or "none" to override). `precision`:
+    "float32" (the exported weights) or "int8" (`model_3dmatch_int8` / `model_kitti_int8`,
+    descriptors/spinnet/quantize.py: the point MLP's max in the C++ core, the convolutions quantised; rows
+    labelled `spinnet_int8`)."""
 
     name = "spinnet"
     default_graph_key = "spinnet"
     cost_note = (
-        "SpinNet describes 400 keypoints a 3DMatch fragment (~40-60 s on a CPU core) and 1,000 a KITTI scan "
-        "(~55-80 s); descriptor.keypoints=N trades speed for inliers; a pair in the correspondence cache "
-        "is not described again"
+        "SpinNet (INT8) describes 1,000 keypoints a 3DMatch fragment in ~15 s and 2,500 a KITTI scan in "
+        "~20-30 s on a loaded 2-core CPU (float32: ~3x that); descriptor.keypoints=N trades speed for "
+        "inliers; a pair in the correspondence cache is not described again"
     )
 
     def __init__(
@@ -262,6 +322,9 @@ class SpinNetDescriptor(BufferDescriptor):
         model: str = "auto",
         model_3dmatch: str = SHIPPED["3dmatch"],
         model_kitti: str = SHIPPED["kitti"],
+        model_3dmatch_int8: str = SHIPPED_INT8["3dmatch"],
+        model_kitti_int8: str = SHIPPED_INT8["kitti"],
+        precision: str = "float32",
         keypoints: int | None = None,
         sampling: str | None = None,
         downsample: float | None = None,
@@ -291,22 +354,18 @@ class SpinNetDescriptor(BufferDescriptor):
             "spinnet", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
             threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
         )  # fmt: skip
-        self.precision = "float32"
+        self._set_precision(precision, model_3dmatch_int8, model_kitti_int8)
         self.max_keypoints = None if keypoints is None else int(keypoints)
         self.sampling = sampling
         self.downsample = downsample
         if self.model != "auto":
             self.load(self.model)
 
-    def model_path(self, which: str) -> Path:
-        return resolve_model_path(
-            {"3dmatch": self.model_3dmatch, "kitti": self.model_kitti}.get(which, which)
-        )
+    title = "SpinNet"
+    quantize_script = "descriptors/spinnet/quantize.py"
 
-    def load(self, which: str) -> SpinNetModel:
-        if which not in self._models:
-            self._models[which] = SpinNetModel(self.model_path(which), self.threads, self.execution_providers)
-        return self._models[which]
+    def _open_model(self, path: Path) -> SpinNetModel:
+        return SpinNetModel(path, self.threads, self.execution_providers)
 
     def model_for(self, family: str) -> SpinNetModel:
         if self.model != "auto":
@@ -320,8 +379,8 @@ class SpinNetDescriptor(BufferDescriptor):
     # -- keypoints: a seeded subset of the voxel keypoints
 
     def keypoints(self, points, voxel, what="cloud", family="3dmatch"):
-        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 400 for the
-        3DMatch model, 1,000 for KITTI's), by `sampling` (None: the model's, fps / random)."""
+        """The voxel keypoints, then at most `keypoints` of them (None: the model's own default, 1,000 for the
+        3DMatch model, 2,500 for KITTI's), by `sampling` (None: the model's, fps / random)."""
         pts, kp = voxel_keypoints(points, voxel, what)
         which = (
             self.model
@@ -358,6 +417,12 @@ class SpinNetDescriptor(BufferDescriptor):
         self._remember(self._states, key, state)
         return state, {"clouds_s": time.perf_counter() - t0}
 
+    def _model_input(self, model, state: CloudState, k: np.ndarray, how: str, axes) -> np.ndarray:
+        patch = self.patches(model, state, k, how)
+        if model.pooled:
+            return pool_cells(patch, model.params, model.point_weights)
+        return group_cells(patch, model.params)
+
     def patches(self, model, state: CloudState, kp: np.ndarray, how: str) -> np.ndarray:
         """Aligned patches `(M, patch_points, 3)` float64 of the keypoints `kp` (steps 3-4)."""
         p = model.params
@@ -369,30 +434,12 @@ class SpinNetDescriptor(BufferDescriptor):
             patch = patch @ align_rotations(pca_axes(patch, kp))
         return patch
 
-    def _embed(self, model, state: CloudState, kp, todo, how: str, entry: Described, what: str) -> dict:
-        p = model.params
-        sel = kp[todo]
-        m, bs = len(sel), self.batch_size
-        bar = keypoint_bar(m, f"SpinNet {what}", self.progress, bs)
-        t_prep = t_run = 0.0
-        for s in range(0, m, bs):
-            ta = time.perf_counter()
-            x = group_cells(self.patches(model, state, sel[s : s + bs], how), p)
-            tb = time.perf_counter()
-            y = model.desc.run(None, {model.input_name: x})[0]
-            t_prep += tb - ta
-            t_run += time.perf_counter() - tb
-            if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
-                raise InputError(
-                    f"SpinNet model {model.desc_path} returned {y.shape} for {len(x)} patches, expected "
-                    f"({len(x)}, {entry.desc.shape[1]})"
-                )
-            norm = np.linalg.norm(y, axis=1, keepdims=True)
-            entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
-            entry.done[todo[s : s + len(y)]] = True
-            bar.update(len(y))
-        bar.close()
-        return {"patches_s": t_prep, "network_s": t_run}
 
-
-__all__ = ["SpinNetDescriptor", "SpinNetParams", "azimuth_rotations", "cell_centres", "group_cells"]
+__all__ = [
+    "SpinNetDescriptor",
+    "SpinNetParams",
+    "azimuth_rotations",
+    "cell_centres",
+    "group_cells",
+    "pool_cells",
+]
