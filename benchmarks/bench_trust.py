@@ -97,8 +97,9 @@ def main() -> None:
     p0 = cases[0].pair
     register(p0.src_cloud, p0.tgt_cloud, **rules(p0), escalate="off")
     rows = []
+    alone = ", ".join(ALONE) + (", kiss" if use_kiss else "")
     print(f"{len(cases)} pairs x {args.seeds} seeds; columns: registered by GT (1/0) for "
-          f"{', '.join(ALONE)}{', kiss' if use_kiss else ''}; then escalation: step, registered, trusted, ms")  # fmt: skip
+          f"{alone}; then escalation: step, registered, trusted, ms")  # fmt: skip
     for case in cases:
         pair = case.pair
         for seed in range(args.seeds):
@@ -134,16 +135,18 @@ def report(rows: list[dict], use_kiss: bool) -> None:
           f"{len(got)}")  # fmt: skip
     for r in wanted:
         if not (r["escalated"] and r["trusted"]):
-            print(f"  missed: {r['pair']} seed {r['seed']} (registered by "
-                  f"{', '.join(o for o in others if r[o])}; escalation: {r['step']}, registered {r['escalated']}, "
-                  f"trusted {r['trusted']})")  # fmt: skip
+            by = ", ".join(o for o in others if r[o])
+            print(f"  missed: {r['pair']} seed {r['seed']} (registered by {by}; escalation: {r['step']}, "
+                  f"registered {r['escalated']}, trusted {r['trusted']})")  # fmt: skip
     wrong_trusted = [r for r in rows if r["trusted"] and not r["escalated"]]
     print(f"escalated poses trusted and wrong: {len(wrong_trusted)}"
           + "".join(f"\n  {r['pair']} seed {r['seed']} ({r['step']})" for r in wrong_trusted))  # fmt: skip
     print("\n| | " + " | ".join(others + ["escalation"]) + " |")
     print("|---|" + "---|" * (len(others) + 1))
+    n_esc = sum(r["escalated"] for r in rows)
+    n_esc_trusted = sum(r["escalated"] and r["trusted"] for r in rows)
     print("| pair-seeds registered | " + " | ".join(str(sum(bool(r[o]) for r in rows)) for o in others)
-          + f" | {sum(r['escalated'] for r in rows)} (of them trusted: {sum(r['escalated'] and r['trusted'] for r in rows)}) |")  # fmt: skip
+          + f" | {n_esc} (of them trusted: {n_esc_trusted}) |")  # fmt: skip
     print(f"| of {len(rows)} | " + " | ".join("" for _ in others) + " | |")
     by_step = Counter(r["step"] for r in rows)
     reg_step = Counter(r["step"] for r in rows if r["escalated"] and r["trusted"])
@@ -153,7 +156,8 @@ def report(rows: list[dict], use_kiss: bool) -> None:
             if s["ms"] > 0:
                 cost[s["step"]].append(s["ms"])
     print(
-        "\n| step | pair-seeds whose pose it gave | of them registered and trusted | tried | median ms when tried |"
+        "\n| step | pair-seeds whose pose it gave | of them registered and trusted | tried "
+        "| median ms when tried |"
     )
     print("|---|---:|---:|---:|---:|")
     for step in cost:
@@ -163,8 +167,9 @@ def report(rows: list[dict], use_kiss: bool) -> None:
     if first:
         esc = statistics.median(r["escalated_ms"] for r in first)
         alone = statistics.median(r["fastmac20_ms"] for r in first)
-        print(f"\ntrusted at the first try ({len(first)} pair-seeds): median {esc:.0f} ms with escalate=auto, "
-              f"{alone:.0f} ms the first step alone (escalate=off) in the same run: {esc / alone:.2f}x")  # fmt: skip
+        print(f"\ntrusted at the first try ({len(first)} pair-seeds): median {esc:.0f} ms with "
+              f"escalate=auto, {alone:.0f} ms the first step alone (escalate=off) in the same run: "
+              f"{esc / alone:.2f}x")  # fmt: skip
     later = [r["escalated_ms"] for r in rows if not (r["step"] == "first" and r["trusted"])]
     if later:
         print(f"escalated ({len(later)} pair-seeds): median {statistics.median(later):.0f} ms, worst "

@@ -54,8 +54,8 @@ def band(ratio) -> str:
 def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
     rows = []
     cases = all_cases(data, synthetic)
-    print(f"{len(cases)} pairs: " + ", ".join(f"{k} {sum(c.kind == k for c in cases)}"
-                                            for k in ("given", "same_scene", "unrelated", "synthetic")))  # fmt: skip
+    kinds = ("given", "same_scene", "unrelated", "synthetic")
+    print(f"{len(cases)} pairs: " + ", ".join(f"{k} {sum(c.kind == k for c in cases)}" for k in kinds))
     for ci, case in enumerate(cases):
         for desc_name, desc in (("fpfh", FPFHDescriptor()), ("fpfh_mutual", FPFHDescriptor(mutual=True))):
             pair = case.pair
@@ -71,7 +71,8 @@ def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
                                        samples=samples, decoy="on")  # fmt: skip
                     except Exception as exc:  # a pair the search fails outright: no pose to trust
                         rows.append({"pair": case.name, "kind": case.kind, "half": case.half,
-                                     "descriptor": desc_name, "config": cfg, "seed": seed, "error": str(exc)})  # fmt: skip
+                                     "descriptor": desc_name, "config": cfg, "seed": seed,
+                                     "error": str(exc)})  # fmt: skip
                         continue
                     r, res = out.row, out.result
                     rows.append({
@@ -157,8 +158,8 @@ def main() -> None:
             c = counts(cal, "final", rate, m)
             fa, fr = sum(v["fa"] for v in c.values()), sum(v["fr"] for v in c.values())
             h = counts(held, "final", rate, m)
-            print(f"  {rate:6.4f} {m:4.1f}  FA {fa:3d}  FR {fr:3d}   (held out: FA {sum(v['fa'] for v in h.values()):3d}"
-                  f"  FR {sum(v['fr'] for v in h.values()):3d})")  # fmt: skip
+            h_fa, h_fr = sum(v["fa"] for v in h.values()), sum(v["fr"] for v in h.values())
+            print(f"  {rate:6.4f} {m:4.1f}  FA {fa:3d}  FR {fr:3d}   (held out: FA {h_fa:3d}  FR {h_fr:3d})")
             grid.append((fa, fr, -rate, -m))
     fa, fr, rate, m = min(grid)
     print(f"chosen on the calibration half (no false accept, then the fewest false rejects, then the larger "

@@ -28,10 +28,15 @@ from fastmac_exp.datasets.user_pairs import SharedRealPairs
 from fastmac_exp.geometry.resolution import resolution_for
 from fastmac_exp.types import Pair
 
-KITTI_FRAMES = {0: "kitti_seq00_overlaptransformer/000000.bin", 5: "kitti_seq00_overlaptransformer/000005.bin",
-                15: "kitti_seq00_overlaptransformer/000015.bin", 94: "kitti_seq00_scancontext/000094.bin",
-                95: "kitti_seq00_scancontext/000095.bin", 198: "kitti_seq00_scancontext/000198.bin",
-                199: "kitti_seq00_scancontext/000199.bin"}  # fmt: skip
+KITTI_FRAMES = {
+    0: "kitti_seq00_overlaptransformer/000000.bin",
+    5: "kitti_seq00_overlaptransformer/000005.bin",
+    15: "kitti_seq00_overlaptransformer/000015.bin",
+    94: "kitti_seq00_scancontext/000094.bin",
+    95: "kitti_seq00_scancontext/000095.bin",
+    198: "kitti_seq00_scancontext/000198.bin",
+    199: "kitti_seq00_scancontext/000199.bin",
+}  # fmt: skip
 # redkitchen fragment -> the given pair whose source it is (its GT maps it into fragment 0)
 KITCHEN = {4: "3dm_redkitchen_4_to_0_teaser_fullres", 6: "3dm_redkitchen_6_to_0_geotransformer",
            7: "3dlm_redkitchen_7_to_0_mac_fullres"}  # fmt: skip
@@ -152,8 +157,9 @@ def real_cases(root: str | Path) -> Iterator[Case]:
         for j, s in enumerate(loaded):
             if ents[j]["category"] != ents[i]["category"] or place(ents[j]) == place(ents[i]):
                 continue
-            yield Case("unrelated", dataclasses.replace(p, name=f"{s.name}(src)+{p.name}(tgt)", src_cloud=s.src_cloud,
-                                                        gt=None, correspondences=None),
+            name = f"{s.name}(src)+{p.name}(tgt)"
+            mixed = dataclasses.replace(p, name=name, src_cloud=s.src_cloud, gt=None, correspondences=None)
+            yield Case("unrelated", mixed,
                        "+".join(sorted((ents[j]["source"], ents[i]["target"]))),
                        f"unrelated-{ents[i]['category']}")  # fmt: skip
 

@@ -95,5 +95,6 @@ def escalate(
 
 
 def _better(a: RegistrationResult, b: RegistrationResult) -> bool:
-    """A trusted pose beats an untrusted one, a pose beats none, then the more confident (then the earlier)."""
+    """A trusted pose beats an untrusted one, a pose beats none, then the more confident (then the
+    earlier)."""
     return (a.trusted, a.ok, a.confidence) > (b.trusted, b.ok, b.confidence)

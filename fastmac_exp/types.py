@@ -140,8 +140,8 @@ class RegistrationResult:
     # what a user without GT can judge the pose by: the input correspondences the pose maps within the
     # inlier threshold (a right pose has many more than the clique; unrelated clouds about the clique's)
     inliers: int = 0
-    # GT-free: whether the pose explains clearly more correspondences than a wrong pose would (geometry.trust), and
-    # the confidence that is thresholded (1 - the false-accept chance; docs/trust.md)
+    # GT-free: whether the pose explains clearly more correspondences than a wrong pose would
+    # (geometry.trust), and the confidence that is thresholded (1 - the false-accept chance; docs/trust.md)
     trusted: bool = False
     confidence: float = 0.0
     chance_inliers: float = float("nan")  # ... the evidence: what chance explains under this pose

@@ -20,7 +20,8 @@ def test_the_cli_warns_of_an_untrusted_pose_counts_it_and_the_row_carries_it(tmp
     assert p.returncode == 0, p.stderr[-2000:]
     assert "UNTRUSTED POSE for a+b: it explains " in p.stdout + p.stderr
     assert "UNTRUSTED poses: 1" in p.stdout
-    assert "WARNING: 1 UNTRUSTED pose(s), not clearly more correspondences than a wrong pose would explain" in p.stdout
+    warning = "WARNING: 1 UNTRUSTED pose(s), not clearly more correspondences than a wrong pose would explain"
+    assert warning in p.stdout
     assert "a+b: no ground truth: not scored; UNTRUSTED POSE (confidence 0." in p.stdout
     row = pd.read_csv(tmp_path / "run" / "results.csv").iloc[0]
     assert not bool(row["trusted"]) and 0.0 <= row["confidence"] < 0.99

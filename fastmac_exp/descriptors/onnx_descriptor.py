@@ -160,8 +160,8 @@ class OnnxDescriptor(SessionPickling, FeatureDescriptor):
     `max_correspondences` caps the output by a random subset drawn with the call's rng (0 = no cap).
     `k`, `radius_factor`, `support_factor` override the model's metadata (normally leave them None).
     `threads`: onnxruntime intra-op threads (default 1, the fastest on this shared 2-core machine; 0: all
-    cores); `batch_size`: patches per onnxruntime run (1,024 runs as fast as 8,192 on the CPU and holds a KITTI
-    scan's describe to 0.8 GB of memory instead of 3.1 GB). `execution_providers`: "auto" (a GPU through
+    cores); `batch_size`: patches per onnxruntime run (1,024 runs as fast as 8,192 on the CPU and holds a
+    KITTI scan's describe to 0.8 GB of memory instead of 3.1 GB). `execution_providers`: "auto" (a GPU through
     onnxruntime-gpu's CUDA provider when there is one, else the CPU) or a list such as ["cuda", "cpu"]
     (`session_providers`); a provider that is missing or fails to start falls back to the CPU with a notice.
     `name` (the results rows' descriptor label) is the model's `fastmac.name` metadata, else its file

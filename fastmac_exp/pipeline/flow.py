@@ -243,9 +243,13 @@ def register_correspondences(
     result = backend.register(work.subset(kept), params)
     total = (time.perf_counter() - t0) * 1e3
     check_not_degenerate(work.src[kept][result.clique], work.tgt[kept][result.clique])
-    trust_ms, decoy_ms = judge(result, work, params, family, distinct, decoy,
-                               lambda chance: decoy_count(work, params, sampler, backend, ratio, family,
-                                                          rng.spawn(1)[0], sample_graph, samples, chance))  # fmt: skip
+
+    def run_decoy(chance: ChanceCounter) -> float:
+        stream = rng.spawn(1)[0]  # spawned only now: the sampler's own spawns are as without the decoy
+        args = (sampler, backend, ratio, family, stream, sample_graph, samples, chance)
+        return decoy_count(work, params, *args)
+
+    trust_ms, decoy_ms = judge(result, work, params, family, distinct, decoy, run_decoy)
     result_to_original(result, offset)
     result.kept = kept
     result.clique = kept[result.clique]

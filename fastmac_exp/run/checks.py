@@ -62,7 +62,8 @@ def run_samples(cfg: DictConfig) -> int | str | None:
 
 
 def run_escalates(cfg: DictConfig) -> bool:
-    """escalate=auto (a pose that is not trusted tries the wider steps) or off (YAML may read off as false)."""
+    """escalate=auto (a pose that is not trusted tries the wider steps) or off (YAML may read off as
+    false)."""
     value = cfg.get("escalate", "off")
     if value is False or value is None or str(value) == "off":
         return False

@@ -481,8 +481,8 @@ def unscored_pairs(table: pd.DataFrame, run_dir: Path, most: int = 100) -> list[
 def untrusted_line(row: dict[str, Any]) -> str:
     return (
         f"UNTRUSTED POSE for {row.get('pair')}: it explains {row.get('pose_inliers')} of {row.get('n_in')} "
-        f"correspondences, not clearly more than a wrong pose would (chance, the search's own pick, structure or "
-        f"a rival pose; confidence {float(row.get('confidence') or 0):.3f} < "
+        f"correspondences, not clearly more than a wrong pose would (chance, the search's own pick, "
+        f"structure or a rival pose; confidence {float(row.get('confidence') or 0):.3f} < "
         f"{TRUST_LEVEL}; docs/trust.md): do not use it"
     )
 
@@ -570,8 +570,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     bad = s.get("untrusted_pairs") or []
     if bad:
         lines.append(
-            f"WARNING: {len(bad)} UNTRUSTED pose(s), not clearly more correspondences than a wrong pose would explain "
-            f"(docs/trust.md): {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}"
+            f"WARNING: {len(bad)} UNTRUSTED pose(s), not clearly more correspondences than a wrong pose "
+            f"would explain (docs/trust.md): {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''}"
         )
     for reason, info in (s.get("failures") or {}).items():
         pairs = ", ".join(info["pairs"][:3]) + (" ..." if info["count"] > 3 else "")
