@@ -317,3 +317,32 @@ def test_ending_workers_survives_a_result_cut_off_mid_message(tmp_path):
         proc.kill()
         raise AssertionError("ending the workers hung on a result cut off mid-message") from None
     assert proc.returncode == 0 and "ended True" in out, out[-2000:]
+
+
+def test_an_interrupt_between_a_rows_fsync_and_its_entry_keeps_the_row_in_the_tables(tmp_path, monkeypatch):
+    """The window CI's background run hit: SIGTERM after the first row reached results.jsonl but before the
+    log's in-memory list had it; the run then wrote no tables and no summary. The log on disk decides."""
+    from fastmac_exp.run import results as results_mod
+    from fastmac_exp.run.experiment import run_experiment
+    from tests.test_pipeline import _cfg
+
+    real = results_mod.ResultsLog.append
+    calls = []
+
+    def append_then_interrupt(self, row):
+        calls.append(row["pair"])
+        if len(calls) == 2:  # the second row is on disk, then the interrupt, before the list has it
+            rows = list(self.rows)
+            real(self, row)
+            self.rows = rows
+            raise KeyboardInterrupt
+        real(self, row)
+
+    monkeypatch.setattr(results_mod.ResultsLog, "append", append_then_interrupt)
+    run_dir = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(_cfg(tmp_path), run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["pairs"] == 2 and not summary["complete"]
+    assert (run_dir / "results.csv").read_text().count("\n") == 3
+    assert [r["pair"] for r in read_rows(run_dir / "results.jsonl")] == calls

@@ -357,6 +357,7 @@ def _run_locked(
     finally:
         bar.close()
         if interrupted:  # after the bar is closed: a line of its own
+            results.reload()
             n = len(results.rows)
             if n:
                 saved = "1 pair is" if n == 1 else f"{n} pairs are"

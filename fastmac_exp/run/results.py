@@ -78,6 +78,11 @@ class ResultsLog:
             os.fsync(f.fileno())
         self.rows.append(row)
 
+    def reload(self) -> None:
+        """The rows as the log on disk holds them: after an interrupt, which can land between a row's
+        fsync and its entry here, the log is what was saved."""
+        self.rows = read_rows(self.path)
+
     def table(self) -> pd.DataFrame:
         return to_table(self.rows)
 
