@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -45,6 +44,7 @@ for p in (REPO, REPO / "descriptors"):
 
 from evaluate import real_pairs, register_all, synthetic_pairs  # noqa: E402
 
+from benchmarks.machine import cpu_model  # noqa: E402
 from fastmac_exp.backends import make_backend  # noqa: E402
 from fastmac_exp.descriptors.buffer import BufferDescriptor, forget_described_clouds  # noqa: E402
 from fastmac_exp.descriptors.keypoints import spread_rows  # noqa: E402
@@ -61,16 +61,6 @@ VARIANTS = {
     "today": {"match_keypoints": 0, "mutual": False},
     "matched": {"match_keypoints": "auto", "mutual": True},
 }
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def make(**kw) -> BufferDescriptor:
@@ -296,9 +286,9 @@ def main(argv=None) -> None:
     ap.add_argument("--ids", nargs="+", default=None, help="only these real pairs (pairs.json ids)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    print(f"CPU: {cpu_name()}, {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} at the start")
+    print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f} at the start")
     res = tune(args) if args.tune else report(args)
-    res["cpu"], res["load_end"] = cpu_name(), os.getloadavg()[0]
+    res["cpu"], res["load_end"] = cpu_model(), os.getloadavg()[0]
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1, default=float) + "\n")
 

@@ -240,12 +240,17 @@ def fuse_requantize(model, moves: tuple[str, ...] = MOVES):
         break
     del g.node[:]
     g.node.extend(nodes)
+    drop_unused_initializers(g)
+    del g.value_info[:]  # types changed from float to uint8 along the padding; onnxruntime infers them
+    return fused
+
+
+def drop_unused_initializers(g) -> None:
+    """Remove the graph's initializers that no node reads (left over after nodes were removed)."""
     used = {x for n in g.node for x in n.input}
     keep = [t for t in g.initializer if t.name in used]
     del g.initializer[:]
     g.initializer.extend(keep)
-    del g.value_info[:]  # types changed from float to uint8 along the padding; onnxruntime infers them
-    return fused
 
 
 def check(family: str, dst: Path, pair) -> dict:

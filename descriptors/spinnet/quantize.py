@@ -39,7 +39,7 @@ REPO = HERE.parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from descriptors.buffer.quantize import MOVES, quantize, sha256, synthetic_clouds  # noqa: E402
+from descriptors.buffer.quantize import MOVES, drop_unused_initializers, quantize, sha256, synthetic_clouds  # noqa: E402
 from fastmac_exp.descriptors.patches import keypoints  # noqa: E402
 from fastmac_exp.descriptors.spinnet import SHIPPED, SpinNetDescriptor, pool_cells  # noqa: E402
 
@@ -101,10 +101,7 @@ def pooled_model(src: Path):
     keep.reverse()
     del g.node[:]
     g.node.extend(keep)
-    used = {x for n in g.node for x in n.input}
-    kept = [t for t in g.initializer if t.name in used]
-    del g.initializer[:]
-    g.initializer.extend(kept)
+    drop_unused_initializers(g)
     del g.input[:]
     g.input.append(helper.make_tensor_value_info("pooled", TensorProto.FLOAT, ["M", rad * ele * azi, f]))
     del g.value_info[:]
