@@ -158,14 +158,11 @@ def grid_for(p: SpinNetParams) -> Grid:
         return _GRIDS[key]
 
 
-def group_cells(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
-    """Aligned patches `(M, P, 3)` (offsets from the keypoint, metres at scale 1) -> the model input
-    `(M, cells * samples, 3)` float32 (module docstring, step 5). Needs the C++ core."""
+def _kernel_args(aligned: np.ndarray, p: SpinNetParams) -> tuple:
+    """The C++ kernels' arguments for aligned patches: the patches as float32, then the cell grid (centres,
+    squared radius, cell table, inverse radius and cell size, samples a cell, rotations)."""
     g = grid_for(p)
-    core = _core()
-    if core is None or not hasattr(core, "spinnet_group_cells"):
-        return group_cells_numpy(aligned, p)
-    return core.spinnet_group_cells(
+    return (
         np.ascontiguousarray(aligned, dtype=np.float32),
         g.centres,
         float(g.r2),
@@ -177,6 +174,15 @@ def group_cells(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
         p.samples,
         g.rotations,
     )
+
+
+def group_cells(aligned: np.ndarray, p: SpinNetParams) -> np.ndarray:
+    """Aligned patches `(M, P, 3)` (offsets from the keypoint, metres at scale 1) -> the model input
+    `(M, cells * samples, 3)` float32 (module docstring, step 5). Needs the C++ core."""
+    core = _core()
+    if core is None or not hasattr(core, "spinnet_group_cells"):
+        return group_cells_numpy(aligned, p)
+    return core.spinnet_group_cells(*_kernel_args(aligned, p))
 
 
 def pool_cells(aligned: np.ndarray, p: SpinNetParams, weights: np.ndarray) -> np.ndarray:
@@ -184,24 +190,11 @@ def pool_cells(aligned: np.ndarray, p: SpinNetParams, weights: np.ndarray) -> np
     slot @ `weights` (3, F), `(M, cells, F)` float32 (group_cells followed by the point MLP's product and the
     max over the samples, without the 10 MB a keypoint of grouped cells; the bias is added in the model, after
     the max, which it commutes with). Needs the C++ core for speed."""
-    g = grid_for(p)
     w = np.ascontiguousarray(weights, dtype=np.float32)
     core = _core()
     if core is None or not hasattr(core, "spinnet_pool_cells"):
         return pool_cells_numpy(aligned, p, w)
-    return core.spinnet_pool_cells(
-        np.ascontiguousarray(aligned, dtype=np.float32),
-        g.centres,
-        float(g.r2),
-        g.table.ptr,
-        g.table.cells,
-        g.table.g,
-        float(np.float32(1.0 / p.des_r)),
-        float(np.float32(1.0 / g.table.h)),
-        p.samples,
-        g.rotations,
-        w,
-    )
+    return core.spinnet_pool_cells(*_kernel_args(aligned, p), w)
 
 
 def pool_cells_numpy(aligned: np.ndarray, p: SpinNetParams, weights: np.ndarray) -> np.ndarray:
