@@ -154,46 +154,6 @@ void buffer_group_cells(const float *pts, int64_t m, int64_t p, const float *cen
     }
 }
 
-void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
-                         const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
-                         const float *rot, int64_t azi_n, float *out) {
-    std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
-    std::vector<int64_t> count(ncell);
-    for (int64_t j = 0; j < m; ++j) {
-        std::fill(count.begin(), count.end(), 0);
-        float *o = out + j * ncell * ns * 3;
-        const float *base = pts + j * p * 3;
-        for (int64_t s = 0; s < p; ++s) {
-            const float *q = base + s * 3;
-            const int64_t vox = cell_voxel(q, to_unit, inv_h, g);
-            for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
-                const int64_t c = cells[t];
-                if (count[c] >= ns) continue;
-                const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
-                const float d2 = dx * dx + dy * dy + dz * dz;
-                if (d2 < r2) {
-                    const float *r = rot + 9 * (c % azi_n);
-                    float *slot = o + (c * ns + count[c]) * 3;
-                    slot[0] = r[0] * dx + r[1] * dy + r[2] * dz;
-                    slot[1] = r[3] * dx + r[4] * dy + r[5] * dz;
-                    slot[2] = r[6] * dx + r[7] * dy + r[8] * dz;
-                    ++count[c];
-                }
-            }
-        }
-        // a cell without a hit: ball_query's zero-initialised indices put patch slot 0 in its first slot
-        for (int64_t c = 0; c < ncell; ++c) {
-            if (count[c]) continue;
-            const float dx = base[0] - centres[3 * c], dy = base[1] - centres[3 * c + 1], dz = base[2] - centres[3 * c + 2];
-            const float *r = rot + 9 * (c % azi_n);
-            float *slot = o + c * ns * 3;
-            slot[0] = r[0] * dx + r[1] * dy + r[2] * dz;
-            slot[1] = r[3] * dx + r[4] * dy + r[5] * dz;
-            slot[2] = r[6] * dx + r[7] * dy + r[8] * dz;
-        }
-    }
-}
-
 namespace {
 // f[k] = max(f[k], v . w[:, k]) for the nf features (w: 3 x nf, row-major)
 inline void max_features(float *f, const float v[3], const float *w, int64_t nf) {
@@ -205,7 +165,55 @@ inline void rotate(const float *r, float dx, float dy, float dz, float v[3]) {
     v[1] = r[3] * dx + r[4] * dy + r[5] * dz;
     v[2] = r[6] * dx + r[7] * dy + r[8] * dz;
 }
+
+// SpinNet's ball query of keypoint j's aligned patch into its cells, rotated into each cell's frame:
+// hit(c, k, v) for the k-th of at most ns samples of cell c, then, for every cell, done(c, count): a cell
+// without a hit gets ball_query's patch slot 0 (its zero-initialised indices) as hit(c, 0, v) first.
+template <class Hit, class Done>
+void visit_cells(const float *base, int64_t p, const float *centres, int64_t ncell, float r2, const int64_t *ptr,
+                 const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns, const float *rot,
+                 int64_t azi_n, std::vector<int64_t> &count, Hit &&hit, Done &&done) {
+    std::fill(count.begin(), count.end(), 0);
+    for (int64_t s = 0; s < p; ++s) {
+        const float *q = base + s * 3;
+        const int64_t vox = cell_voxel(q, to_unit, inv_h, g);
+        for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
+            const int64_t c = cells[t];
+            if (count[c] >= ns) continue;
+            const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
+            const float d2 = dx * dx + dy * dy + dz * dz;
+            if (d2 < r2) {
+                float v[3];
+                rotate(rot + 9 * (c % azi_n), dx, dy, dz, v);
+                hit(c, count[c], v);
+                ++count[c];
+            }
+        }
+    }
+    for (int64_t c = 0; c < ncell; ++c) {
+        if (count[c] == 0) {
+            float v[3];
+            rotate(rot + 9 * (c % azi_n), base[0] - centres[3 * c], base[1] - centres[3 * c + 1],
+                   base[2] - centres[3 * c + 2], v);
+            hit(c, 0, v);
+        }
+        done(c, count[c]);
+    }
+}
 }  // namespace
+
+void spinnet_group_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
+                         const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
+                         const float *rot, int64_t azi_n, float *out) {
+    std::memset(out, 0, sizeof(float) * size_t(m * ncell * ns * 3));
+    std::vector<int64_t> count(ncell);
+    for (int64_t j = 0; j < m; ++j) {
+        float *o = out + j * ncell * ns * 3;
+        visit_cells(pts + j * p * 3, p, centres, ncell, r2, ptr, cells, g, to_unit, inv_h, ns, rot, azi_n, count,
+                    [&](int64_t c, int64_t k, const float v[3]) { std::copy_n(v, 3, o + (c * ns + k) * 3); },
+                    [](int64_t, int64_t) {});
+    }
+}
 
 void spinnet_pool_cells(const float *pts, int64_t m, int64_t p, const float *centres, int64_t ncell, float r2,
                         const int64_t *ptr, const int16_t *cells, int64_t g, float to_unit, float inv_h, int64_t ns,
@@ -213,35 +221,13 @@ void spinnet_pool_cells(const float *pts, int64_t m, int64_t p, const float *cen
     std::vector<int64_t> count(ncell);
     const float zero[3] = {0.0f, 0.0f, 0.0f};
     for (int64_t j = 0; j < m; ++j) {
-        std::fill(count.begin(), count.end(), 0);
         float *o = out + j * ncell * nf;
         std::fill(o, o + ncell * nf, -std::numeric_limits<float>::infinity());
-        const float *base = pts + j * p * 3;
-        for (int64_t s = 0; s < p; ++s) {
-            const float *q = base + s * 3;
-            const int64_t vox = cell_voxel(q, to_unit, inv_h, g);
-            for (int64_t t = ptr[vox]; t < ptr[vox + 1]; ++t) {
-                const int64_t c = cells[t];
-                if (count[c] >= ns) continue;
-                const float dx = q[0] - centres[3 * c], dy = q[1] - centres[3 * c + 1], dz = q[2] - centres[3 * c + 2];
-                const float d2 = dx * dx + dy * dy + dz * dz;
-                if (d2 < r2) {
-                    float v[3];
-                    rotate(rot + 9 * (c % azi_n), dx, dy, dz, v);
-                    max_features(o + c * nf, v, w, nf);
-                    ++count[c];
-                }
-            }
-        }
-        for (int64_t c = 0; c < ncell; ++c) {
-            if (count[c] == 0) {  // ball_query's patch slot 0 in the first slot (spinnet_group_cells)
-                float v[3];
-                rotate(rot + 9 * (c % azi_n), base[0] - centres[3 * c], base[1] - centres[3 * c + 1],
-                       base[2] - centres[3 * c + 2], v);
-                max_features(o + c * nf, v, w, nf);
-            }
-            if (count[c] < ns && !(count[c] == 0 && ns == 1)) max_features(o + c * nf, zero, w, nf);  // empty slots
-        }
+        visit_cells(pts + j * p * 3, p, centres, ncell, r2, ptr, cells, g, to_unit, inv_h, ns, rot, azi_n, count,
+                    [&](int64_t c, int64_t, const float v[3]) { max_features(o + c * nf, v, w, nf); },
+                    [&](int64_t c, int64_t n) {  // the slots left empty hold zeros
+                        if (n < ns && !(n == 0 && ns == 1)) max_features(o + c * nf, zero, w, nf);
+                    });
     }
 }
 
