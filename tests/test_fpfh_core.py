@@ -243,8 +243,41 @@ def test_fast_matcher_equals_float64_brute_force(monkeypatch, generic):
     assert idx[21] == 7  # the lower of two equal targets
     assert settled >= 2
     d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)
-    np.testing.assert_allclose(second, np.sort(d2, axis=1)[:, 1], atol=2e-5)
+    np.testing.assert_allclose(second, np.sort(d2, axis=1)[:, 1], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(core.core().nearest_rows_fast(a, b, num_threads=1)[0], idx)
+
+
+@pytest.mark.parametrize("prune", ["on", "off"])
+@pytest.mark.parametrize(
+    "case", ["duplicates", "scaled_up", "scaled_down", "points_3d", "one_column", "wide", "few_rows"]
+)
+def test_fast_matcher_pruned_tiles_equal_float64_brute_force(monkeypatch, case, prune):
+    """The tiles of similar targets that the triangle bound skips never hold the nearest or the runner-up:
+    the same indices as the float64 brute force (ties to the lowest index, also across tiles) and the
+    runner-up's squared distance in float64, with the bound on and off."""
+    monkeypatch.setenv("FASTMAC_FM_PRUNE", prune)
+    rng = np.random.default_rng(7)
+    if case == "duplicates":  # 60 distinct features, each repeated across the tree's leaves
+        base = _features(2, 60)
+        b = base[rng.integers(0, 60, 3000)]
+        a = np.vstack([base[rng.integers(0, 60, 200)], _features(3, 200)])
+    elif case.startswith("scaled"):
+        k = 1e4 if case == "scaled_up" else 1e-4
+        a, b = k * _features(4, 300), k * _features(5, 2500)
+    elif case == "points_3d":
+        a, b = rng.normal(size=(400, 3)), rng.normal(size=(5000, 3))
+    elif case == "one_column":
+        a, b = rng.integers(0, 50, (300, 1)).astype(float), rng.integers(0, 50, (2000, 1)).astype(float)
+    elif case == "wide":
+        a, b = rng.normal(size=(100, 96)), rng.normal(size=(1500, 96))
+    else:
+        a, b = _features(6, 33), _features(7, 4000)
+    ref = core.core().nearest_rows(a, b)
+    idx, second, _ = core.core().nearest_rows_fast(a, b)
+    np.testing.assert_array_equal(idx, ref)
+    d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)
+    scale = max(1.0, float((a**2).sum(1).max()), float((b**2).sum(1).max()))
+    np.testing.assert_allclose(second, np.sort(d2, axis=1)[:, 1], rtol=0, atol=1e-12 * scale)
 
 
 def test_fast_matcher_equals_brute_force_on_real_fpfh():

@@ -732,7 +732,7 @@ NB_MODULE(_mac_core, m) {
           "For each query, how many points lie within radius (squared distance <= radius^2), from a grid");
     m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
           "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
-          "to float32 accuracy, rows settled in float64)");
+          "in float64, rows whose winner float64 settled)");
     m.def("kabsch", &kabsch, "src"_a, "tgt"_a, "weights"_a = nb::none(),
           "4x4 pose by Kabsch with unweighted centroids (optionally weighted cross-covariance).");
     nb::class_<fastmac::PatchIndex>(m, "BufferPatchIndex",

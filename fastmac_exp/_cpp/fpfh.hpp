@@ -80,13 +80,13 @@ std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double nor
 
 // Exact nearest rows in feature space, fast (feature_match.cpp): for every row of a (na x dim) the index of
 // the nearest row of b (nb x dim), equal to nearest_rows' (the same float64 arithmetic decides, ties to the
-// lowest index), and the squared distance to the runner-up to float32 accuracy (inf when nb < 2).
-// Float32 products screen all of b; a row whose winner is not clear of its runner-up by the float32 error
-// bound is settled by a float64 scan.
+// lowest index), and the squared distance to the runner-up in float64 (inf when nb < 2). Float32 products
+// screen b (large b in tiles of similar rows, skipped where a triangle bound shows they hold neither), and
+// the columns the float32 error bound cannot tell from the winner or the runner-up are compared in float64.
 struct Matches {
     std::vector<int64_t> idx;
     std::vector<double> d2_second;
-    int64_t settled_in_float64 = 0;  // rows the screen could not decide
+    int64_t settled_in_float64 = 0;  // rows whose winner the screen could not decide alone
 };
 Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t nb, int64_t dim, int nthreads);
 
