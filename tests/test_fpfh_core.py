@@ -280,6 +280,14 @@ def test_fast_matcher_pruned_tiles_equal_float64_brute_force(monkeypatch, case, 
     np.testing.assert_allclose(second, np.sort(d2, axis=1)[:, 1], rtol=0, atol=1e-12 * scale)
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_fast_matcher_refuses_a_non_finite_target(bad):
+    a, b = _features(8, 50), _features(9, 2000)
+    b[1234, 5] = bad  # a NaN once slipped past the norm's maximum
+    with pytest.raises(ValueError, match="row 1234 of b has a non-finite value"):
+        core.core().nearest_rows_fast(a, b)
+
+
 def test_fast_matcher_equals_brute_force_on_real_fpfh():
     pts, voxel = kitti_cloud()
     kp, f = fpfh_features(pts, voxel, impl="core")

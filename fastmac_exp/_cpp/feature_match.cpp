@@ -425,10 +425,12 @@ Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t 
     for (int64_t j = 0; j < nb; ++j) {
         double s = 0.0;
         for (int64_t d = 0; d < dim; ++d) s += b[j * dim + d] * b[j * dim + d];
+        // a NaN would pass std::max unseen
+        if (!std::isfinite(s))
+            throw std::invalid_argument("nearest_rows_fast: row " + std::to_string(j) + " of b has a non-finite value");
         bb64[j] = s;
         bmax2 = std::max(bmax2, s);
     }
-    if (!std::isfinite(bmax2)) throw std::invalid_argument("nearest_rows_fast: b has a non-finite value");
     Screen S;
     S.nb = nb;
     S.dim = dim;
