@@ -37,6 +37,7 @@ DATA = {
     "kitti": ("synthetic outdoor (KITTI-like)", "KITTI"),
     "real_indoor": ("real indoor pairs (3DMatch/3DLoMatch fragments)", "3DMatch"),
     "real_outdoor": ("real outdoor pairs (KITTI, a Velodyne pair, an Apollo loop closure)", "KITTI"),
+    "real_object": ("real object scans (the Stanford bunny and dragon)", "objects"),
 }
 SHORT = {
     "3dmatch": "synthetic 3DMatch-like",
@@ -44,6 +45,7 @@ SHORT = {
     "kitti": "synthetic KITTI-like",
     "real_indoor": "real indoor",
     "real_outdoor": "real outdoor",
+    "real_object": "real objects",
 }
 
 
@@ -234,6 +236,25 @@ def data_heading(data: str, a: pd.DataFrame, extra: str = "") -> str:
 
 
 # ---- verdicts ---------------------------------------------------------------------------------------------
+def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str]) -> list[str]:
+    """Each claim with its verdicts counted apart for the synthetic families and the real pairs, and each
+    evidence line with the number of pairs it rests on."""
+    out = []
+    for title, items in claims.items():
+        parts = []
+        for label, real in (("synthetic", False), ("real", True)):
+            group = [w for w, ev in items if ev.split(":")[0].startswith("real_") == real]
+            if group:
+                counts = {v: group.count(v) for v in dict.fromkeys(group)}
+                parts.append(f"{label}: " + ", ".join(f"{v} {n}" for v, n in counts.items()))
+        out.append(f"- **{title}** — " + "; ".join(parts) + f" (of {len(items)} data sets)")
+        for v, ev in items:
+            key, _, rest = ev.partition(":")
+            size = f" ({sizes[key]})" if key in sizes else ""
+            out.append(f"  - {key}{size}:{rest} → {v}")
+    return out
+
+
 def compare(mine: float, others: list[float], spread: float = 0.0) -> str:
     """'better' / 'tie' / 'worse' of one RR against the best of the others."""
     best = max(others)

@@ -34,7 +34,7 @@ from studies import (
     stochastic,
     time_profile,
 )
-from studies.common import REPO, Page, text, wall_times
+from studies.common import REPO, Page, render_claims, text, wall_times
 
 
 def machine() -> str:
@@ -156,25 +156,6 @@ def place_sections(lines: list[str], studies: Path, old: str) -> list[str]:
         at = md.index("\n## Notes") + 1 if "\n## Notes" in md else len(md)
         md = md[:at] + kept + md[at:]
     return md.split("\n")
-
-
-def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str]) -> list[str]:
-    """Each claim with its verdicts counted apart for the synthetic families and the real pairs, and each
-    evidence line with the number of pairs it rests on."""
-    out = []
-    for title, items in claims.items():
-        parts = []
-        for label, real in (("synthetic", False), ("real", True)):
-            group = [w for w, ev in items if ev.split(":")[0].startswith("real_") == real]
-            if group:
-                counts = {v: group.count(v) for v in dict.fromkeys(group)}
-                parts.append(f"{label}: " + ", ".join(f"{v} {n}" for v, n in counts.items()))
-        out.append(f"- **{title}** — " + "; ".join(parts) + f" (of {len(items)} data sets)")
-        for v, ev in items:
-            key, _, rest = ev.partition(":")
-            size = f" ({sizes[key]})" if key in sizes else ""
-            out.append(f"  - {key}{size}:{rest} → {v}")
-    return out
 
 
 def make_results(studies: Path, docs: Path) -> str:

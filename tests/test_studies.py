@@ -248,6 +248,44 @@ def test_descriptor_study_splices_section_5(tmp_path):
     assert (docs / "figures" / "descriptor_robustness_indoor.png").is_file()
 
 
+def test_descriptor_splice_replaces_its_claim_notes_and_counts_trust(tmp_path):
+    """The splice replaces the descriptor claim in the recomputed list and the section's notes in the page's
+    notes (the other claims and notes stay), and counts the `trusted` verdict against the GT: at ratio 0.2
+    one wrong pose trusted (a false accept) and one right pose not (a false reject); failed rows have no
+    pose and are not counted."""
+    from studies import descriptor_robustness as dr
+
+    studies, docs = tmp_path / "studies", tmp_path / "docs"
+    base = dict(dataset="shared_real", backend="cpp", sampler="highpass", seed=0)
+    rows = []
+    for ratio in (1.0, 0.2, 0.01):
+        for i in range(4):
+            ok = i < 3
+            trusted = ok if ratio != 0.2 else {0: True, 1: False, 2: True, 3: True}[i]  # p1: FR, p3: FA
+            rows.append(dict(pair=f"p{i}", success=ok, trusted=trusted, descriptor="fpfh", ratio=ratio,
+                             **base))  # fmt: skip
+        rows.append(dict(pair="p4", success=False, trusted=False, descriptor="fpfh", ratio=ratio,
+                         error="RegistrationFailed: no clique", **base))  # fmt: skip
+    _run(studies / "descriptor_robustness_real_indoor" / "0", rows)
+    docs.mkdir()
+    claim = f"- **{dr.CLAIM}** — real: holds 1 (of 1 data sets)"
+    (docs / "results.md").write_text(
+        f"# R\n\n- **Other claim** — real: agrees 1\n  - real_indoor: x → agrees\n{claim}\n"
+        "  - real_indoor (9 pairs): OLD → holds\n- **Last claim** — real: agrees 1\n\n## 5. Old\n\nold\n\n"
+        "## 6. After\n\n## Notes\n\n- filter ablation, kitti: KEEP\n- descriptor robustness, x: OLD NOTE\n"
+    )
+    dr.splice(studies, docs)
+    md = (docs / "results.md").read_text()
+    assert "OLD" not in md and "- **Other claim** — real: agrees 1\n  - real_indoor: x → agrees\n" in md
+    assert "  - real_indoor (5 pairs): RR 100 % → 1 %: fpfh 60.0 → 60.0 → not tested" in md
+    assert "\n- **Last claim**" in md and "- filter ablation, kitti: KEEP" in md
+    assert "- descriptor robustness, real_indoor, fpfh: 3 failed row(s), e.g. `RegistrationFailed" in md
+    heading = "### real_indoor: real indoor pairs (3DMatch/3DLoMatch fragments) — 5 pairs"
+    assert _table_row(md, heading, "fpfh") == ["fpfh", "12", "9", "1", "1", "4, 3, 1, 1"]
+    t = pd.DataFrame(rows).assign(error=lambda d: d["error"].fillna(""))
+    assert dr.trust_counts(t, "fpfh", 1.0) == (4, 3, 0, 0)
+
+
 def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
     """Another page's figure survives; section 1 ran here (its sweep's ran.json): a line under its heading
     names the core, when and the load; section 5 did not run: the previous page's text stays, said so with
