@@ -3,11 +3,13 @@ runs, the paper's numbers (studies/paper/*.csv), the prose (studies/text/*.md) a
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import string
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import matplotlib
@@ -233,6 +235,34 @@ def one_pair(a: pd.DataFrame) -> float:
 
 def data_heading(data: str, a: pd.DataFrame, extra: str = "") -> str:
     return f"### {data}: {DATA[data][0]} — {per_seed_pairs(a)}{extra}"
+
+
+def ran_records(studies: Path, patterns: list[str]) -> list[dict]:
+    """The ran.json of every sweep below the directories `patterns` (globs in <studies>)."""
+    out = []
+    for pattern in patterns:
+        for d in sorted(studies.glob(pattern)):
+            for f in sorted([d / "ran.json", *d.glob("*/ran.json")]):
+                if f.is_file():
+                    out.append(json.loads(f.read_text()))
+    return out
+
+
+def ran_line(records: list[dict]) -> str:
+    """One line: the core the sweeps ran on, when, their wall time and the load they ran under."""
+    cores = sorted({r["core_commit"][:7] for r in records})
+    sha = sorted({r["core_sha1"][:8] for r in records})
+    t0 = min(datetime.fromisoformat(r["started"].replace("Z", "+00:00")) for r in records)
+    t1 = max(datetime.fromisoformat(r["ended"].replace("Z", "+00:00")) for r in records)
+    loads = [float(r[k].split()[0]) for r in records for k in ("load_start", "load_end")]
+    failed = [r for r in records if r.get("status") != "done"]
+    return (
+        f"_Ran on the C++ core of commit `{'`, `'.join(cores)}` (extension sha1 {', '.join(sha)}), "
+        f"{t0:%Y-%m-%d %H:%M}–{t1:%H:%M} UTC, {len(records)} sweep(s), "
+        f"{sum(int(r['wall_s']) for r in records):,} s of wall time in all, on {records[0]['cpu']} "
+        f"({records[0]['nproc']} cores), load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
+        "sweeps' starts and ends" + (f"; {len(failed)} sweep(s) failed" if failed else "") + "._"
+    )
 
 
 # ---- verdicts ---------------------------------------------------------------------------------------------

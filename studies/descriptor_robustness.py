@@ -26,6 +26,8 @@ from studies.common import (
     data_heading,
     fnum,
     per_seed_pairs,
+    ran_line,
+    ran_records,
     render_claims,
     row_of,
     rr_cell,
@@ -213,6 +215,9 @@ def splice(studies: Path, docs: Path) -> None:
     for old in [*page.fig.glob("descriptor_robustness*.png"), *page.csv.glob("descriptor_robustness_*.csv")]:
         old.unlink()
     render(page)
+    records = ran_records(studies, ["descriptor_robustness_*"])  # the line under the heading, as make_results
+    if records:
+        page.md[1:1] = ["", ran_line(records)]
     md = (docs / "results.md").read_text()
     start, end = md.index("## 5. "), md.index("## 6. ")
     md = md[:start] + "\n".join(page.md).rstrip() + "\n\n" + md[end:]

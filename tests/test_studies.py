@@ -3,6 +3,7 @@ quotes, and make_results renders a page from a small hand-made studies directory
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -267,6 +268,10 @@ def test_descriptor_splice_replaces_its_claim_notes_and_counts_trust(tmp_path):
         rows.append(dict(pair="p4", success=False, trusted=False, descriptor="fpfh", ratio=ratio,
                          error="RegistrationFailed: no clique", **base))  # fmt: skip
     _run(studies / "descriptor_robustness_real_indoor" / "0", rows)
+    ran = dict(started="2026-12-07T02:16:47Z", ended="2026-12-07T02:25:20Z", wall_s=513, status="done",
+               load_start="1.50 1.2 1.0", load_end="2.25 2.0 1.5", core_commit="abcdef1234",
+               core_sha1="0123abcd99", cpu="CPU X", nproc=2)  # fmt: skip
+    (studies / "descriptor_robustness_real_indoor" / "ran.json").write_text(json.dumps(ran))
     docs.mkdir()
     claim = f"- **{dr.CLAIM}** — real: holds 1 (of 1 data sets)"
     (docs / "results.md").write_text(
@@ -276,6 +281,8 @@ def test_descriptor_splice_replaces_its_claim_notes_and_counts_trust(tmp_path):
     )
     dr.splice(studies, docs)
     md = (docs / "results.md").read_text()
+    assert "## 5. Descriptor robustness (paper Fig. desc)\n\n_Ran on the C++ core of commit `abcdef1` " in md
+    assert "2026-12-07 02:16–02:25 UTC, 1 sweep(s), 513 s of wall time in all, on CPU X (2 cores)" in md
     assert "OLD" not in md and "- **Other claim** — real: agrees 1\n  - real_indoor: x → agrees\n" in md
     assert "  - real_indoor (5 pairs): RR 100 % → 1 %: fpfh 60.0 → 60.0 → not tested" in md
     assert "\n- **Last claim**" in md and "- filter ablation, kitti: KEEP" in md
