@@ -12,7 +12,10 @@ false rejects) and false accepts / rejects are reported per inlier-ratio band on
 the previous test (the 1 % structure allowance), the rival alone, the decoy alone and both.
 
     PYTHONPATH=. python benchmarks/calibrate_trust.py [--data ../shared/data] [--seeds 2] [--synthetic 8]
-        [--json evidence.json] [--replay evidence.json]
+        [--descriptors fpfh fpfh_mutual buffer] [--json evidence.json] [--replay evidence.json]
+
+`--descriptors buffer` runs BUFFER as run.py and register() build it (conf/descriptor/buffer.yaml: INT8,
+mutual matches of capped keypoint sets); the tables are printed per descriptor.
 """
 
 from __future__ import annotations
@@ -51,13 +54,30 @@ def band(ratio) -> str:
     return BANDS[0] if r < 0.01 else BANDS[1] if r <= 0.03 else BANDS[2]
 
 
-def gather(data: str, seeds: int, synthetic: int) -> list[dict]:
+def configured(name: str):
+    """A descriptor as run.py and register() build it: conf/descriptor/<name>.yaml, no progress bar."""
+    from fastmac_exp.options import compose_run, instantiate_part
+
+    node = compose_run({"descriptor": name}).descriptor
+    node.progress = False
+    return instantiate_part(node)
+
+
+DESCRIPTORS = {  # name: factory (each built once a run)
+    "fpfh": FPFHDescriptor,
+    "fpfh_mutual": lambda: FPFHDescriptor(mutual=True),
+    "buffer": lambda: configured("buffer"),
+}
+
+
+def gather(data: str, seeds: int, synthetic: int, descriptors=("fpfh", "fpfh_mutual")) -> list[dict]:
     rows = []
     cases = all_cases(data, synthetic)
     kinds = ("given", "same_scene", "unrelated", "synthetic")
     print(f"{len(cases)} pairs: " + ", ".join(f"{k} {sum(c.kind == k for c in cases)}" for k in kinds))
+    built = {name: DESCRIPTORS[name]() for name in descriptors}
     for ci, case in enumerate(cases):
-        for desc_name, desc in (("fpfh", FPFHDescriptor()), ("fpfh_mutual", FPFHDescriptor(mutual=True))):
+        for desc_name, desc in built.items():
             pair = case.pair
             corr = desc(pair, np.random.default_rng(0))
             if pair.gt is not None:
@@ -136,6 +156,7 @@ def main() -> None:
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--synthetic", type=int, default=8)
+    ap.add_argument("--descriptors", nargs="+", choices=list(DESCRIPTORS), default=["fpfh", "fpfh_mutual"])
     ap.add_argument("--json", default=None, help="write the evidence rows here")
     ap.add_argument("--replay", default=None, help="read evidence rows instead of running the pairs")
     args = ap.parse_args()
@@ -144,7 +165,7 @@ def main() -> None:
     else:
         if not (Path(args.data) / "pairs.json").is_file():
             sys.exit(f"calibrate_trust: {args.data}/pairs.json not found (pass --data)")
-        rows = gather(args.data, args.seeds, args.synthetic)
+        rows = gather(args.data, args.seeds, args.synthetic, args.descriptors)
         if args.json:
             Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     cal = [r for r in rows if r["half"] == "calibration"]
@@ -165,8 +186,10 @@ def main() -> None:
     print(f"chosen on the calibration half (no false accept, then the fewest false rejects, then the larger "
           f"constants): STRUCTURE_RATE {-rate}, RIVAL_MARGIN {-m} (geometry/trust.py: {STRUCTURE_RATE}, "
           f"{RIVAL_MARGIN})")  # fmt: skip
-    table(cal, "calibration half (in sample)", STRUCTURE_RATE, RIVAL_MARGIN)
-    table(held, "held-out half (out of sample)", STRUCTURE_RATE, RIVAL_MARGIN)
+    for name in sorted({r["descriptor"] for r in rows}):
+        for part, title in ((cal, "calibration half (in sample)"), (held, "held-out half (out of sample)")):
+            mine = [r for r in part if r["descriptor"] == name]
+            table(mine, f"{name}: {title}", STRUCTURE_RATE, RIVAL_MARGIN)
     for half_rows, label in ((cal, "calibration"), (held, "held-out")):
         for r in half_rows:
             if "error" in r:

@@ -3,11 +3,13 @@ runs, the paper's numbers (studies/paper/*.csv), the prose (studies/text/*.md) a
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import string
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import matplotlib
@@ -37,6 +39,7 @@ DATA = {
     "kitti": ("synthetic outdoor (KITTI-like)", "KITTI"),
     "real_indoor": ("real indoor pairs (3DMatch/3DLoMatch fragments)", "3DMatch"),
     "real_outdoor": ("real outdoor pairs (KITTI, a Velodyne pair, an Apollo loop closure)", "KITTI"),
+    "real_object": ("real object scans (the Stanford bunny and dragon)", "objects"),
 }
 SHORT = {
     "3dmatch": "synthetic 3DMatch-like",
@@ -44,6 +47,7 @@ SHORT = {
     "kitti": "synthetic KITTI-like",
     "real_indoor": "real indoor",
     "real_outdoor": "real outdoor",
+    "real_object": "real objects",
 }
 
 
@@ -233,7 +237,54 @@ def data_heading(data: str, a: pd.DataFrame, extra: str = "") -> str:
     return f"### {data}: {DATA[data][0]} — {per_seed_pairs(a)}{extra}"
 
 
+def ran_records(studies: Path, patterns: list[str]) -> list[dict]:
+    """The ran.json of every sweep below the directories `patterns` (globs in <studies>)."""
+    out = []
+    for pattern in patterns:
+        for d in sorted(studies.glob(pattern)):
+            for f in sorted([d / "ran.json", *d.glob("*/ran.json")]):
+                if f.is_file():
+                    out.append(json.loads(f.read_text()))
+    return out
+
+
+def ran_line(records: list[dict]) -> str:
+    """One line: the core the sweeps ran on, when, their wall time and the load they ran under."""
+    cores = sorted({r["core_commit"][:7] for r in records})
+    sha = sorted({r["core_sha1"][:8] for r in records})
+    t0 = min(datetime.fromisoformat(r["started"].replace("Z", "+00:00")) for r in records)
+    t1 = max(datetime.fromisoformat(r["ended"].replace("Z", "+00:00")) for r in records)
+    loads = [float(r[k].split()[0]) for r in records for k in ("load_start", "load_end")]
+    failed = [r for r in records if r.get("status") != "done"]
+    return (
+        f"_Ran on the C++ core of commit `{'`, `'.join(cores)}` (extension sha1 {', '.join(sha)}), "
+        f"{t0:%Y-%m-%d %H:%M}–{t1:%H:%M} UTC, {len(records)} sweep(s), "
+        f"{sum(int(r['wall_s']) for r in records):,} s of wall time in all, on {records[0]['cpu']} "
+        f"({records[0]['nproc']} cores), load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
+        "sweeps' starts and ends" + (f"; {len(failed)} sweep(s) failed" if failed else "") + "._"
+    )
+
+
 # ---- verdicts ---------------------------------------------------------------------------------------------
+def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str]) -> list[str]:
+    """Each claim with its verdicts counted apart for the synthetic families and the real pairs, and each
+    evidence line with the number of pairs it rests on."""
+    out = []
+    for title, items in claims.items():
+        parts = []
+        for label, real in (("synthetic", False), ("real", True)):
+            group = [w for w, ev in items if ev.split(":")[0].startswith("real_") == real]
+            if group:
+                counts = {v: group.count(v) for v in dict.fromkeys(group)}
+                parts.append(f"{label}: " + ", ".join(f"{v} {n}" for v, n in counts.items()))
+        out.append(f"- **{title}** — " + "; ".join(parts) + f" (of {len(items)} data sets)")
+        for v, ev in items:
+            key, _, rest = ev.partition(":")
+            size = f" ({sizes[key]})" if key in sizes else ""
+            out.append(f"  - {key}{size}:{rest} → {v}")
+    return out
+
+
 def compare(mine: float, others: list[float], spread: float = 0.0) -> str:
     """'better' / 'tie' / 'worse' of one RR against the best of the others."""
     best = max(others)

@@ -26,6 +26,9 @@ from studies.common import (
     data_heading,
     fnum,
     per_seed_pairs,
+    ran_line,
+    ran_records,
+    render_claims,
     row_of,
     rr_cell,
     rr_mean,
@@ -38,6 +41,7 @@ from studies.common import (
 PANELS = {
     "kitti": ("Outdoor (paper's KITTI panel)", ("kitti", "real_outdoor"), "descriptor_robustness_kitti.png"),
     "indoor": ("Indoor (3DMatch)", ("3dmatch", "real_indoor"), "descriptor_robustness_indoor.png"),
+    "object": ("Object scans (not in the paper)", ("real_object",), "descriptor_robustness_object.png"),
 }
 ORDER = ("fpfh", "fcgf_lite", "buffer", "buffer_int8", "spinnet", "spinnet_int8")
 CLAIM = "Stronger descriptors keep RR at every ratio; FCGF and FPFH lose some at 1 %"
@@ -83,6 +87,27 @@ def _claim(page: Page, data: str, t, a, descs: list[str]) -> str:
         f"Paper's claim (*{CLAIM}*), here: **{verdict}**. RR at 100 % → 1 %: {ev} (one pair = "
         f"{one:.1f} points; strong: {', '.join(strong) or 'none'})."
     )
+
+
+def trust_counts(t, d: str, ratio: float | None = None) -> tuple[int, int, int, int]:
+    """(runs with a pose, right poses, false accepts: trusted and wrong, false rejects: right and not
+    trusted) of descriptor d's rows, at one ratio or all; a row that failed has no pose to trust."""
+    m = t["descriptor"].astype(str).eq(d) & t["error"].fillna("").eq("")
+    if ratio is not None:
+        m &= np.isclose(t["ratio"].astype(float), ratio)
+    ok = t.loc[m, "success"].fillna(False).astype(bool)
+    trusted = t.loc[m, "trusted"].fillna(False).astype(bool)
+    return int(m.sum()), int(ok.sum()), int((trusted & ~ok).sum()), int((ok & ~trusted).sum())
+
+
+def trust_table(t, descs: list[str]) -> str:
+    """The `trusted` verdict against the GT per descriptor: every ratio, and FastMAC@20 alone."""
+    rows = []
+    for d in descs:
+        every, at20 = trust_counts(t, d), trust_counts(t, d, 0.2)
+        rows.append([d, *(f"{v:,}" for v in every), ", ".join(str(v) for v in at20)])
+    header = ["descriptor", "runs", "right", "FA", "FR", "ratio 0.2: runs, right, FA, FR"]
+    return markdown_table(header, rows, ["l", "r", "r", "r", "r", "r"])
 
 
 def render(page: Page) -> None:
@@ -149,6 +174,15 @@ def render(page: Page) -> None:
                 "",
             )
         page.add(_claim(page, data, t, a, descs), "")
+        if "trusted" in t:
+            page.add(
+                "The `trusted` verdict (docs/trust.md) against the GT, over the runs that gave a pose "
+                "(pairs x seeds x ratios): FA = trusted and wrong, FR = right and not trusted; the last "
+                "column is FastMAC@20 alone (register()'s default):",
+                "",
+                trust_table(t, descs),
+                "",
+            )
         for d in descs:
             err = t.loc[t["descriptor"].astype(str).eq(d) & t["error"].fillna("").ne(""), "error"]
             if len(err):
@@ -163,16 +197,27 @@ def render(page: Page) -> None:
     page.add(*verbatim("descriptor_robustness_buffer"), "")  # descriptors/evaluate.py --real, by hand
 
 
+def _replace(lines: list[str], old: list[str], new: list[str]) -> list[str]:
+    """`lines` without the lines `old` (found by scanning `lines`, so old[0] comes first) and with `new` where
+    old[0] was; unchanged where either is empty."""
+    if not old or not new:
+        return lines
+    at, gone = lines.index(old[0]), set(old)
+    return lines[:at] + new + [ln for ln in lines[at:] if ln not in gone]
+
+
 def splice(studies: Path, docs: Path) -> None:
-    """Rewrite section 5 of <docs>/results.md (up to "## 6.") from <studies>, its figures and CSVs, and the
-    descriptor_robustness rows of the wall-time table and the logged commands."""
+    """Rewrite section 5 of <docs>/results.md (up to "## 6.") from <studies>, its figures and CSVs, its claim
+    in the recomputed list, its notes in the page's notes, and the descriptor_robustness rows of the
+    wall-time table and the logged commands."""
     page = Page(studies=studies, docs=docs)
     page.fig.mkdir(parents=True, exist_ok=True)
     for old in [*page.fig.glob("descriptor_robustness*.png"), *page.csv.glob("descriptor_robustness_*.csv")]:
         old.unlink()
     render(page)
-    if page.notes:
-        page.add("Notes on this section:", "", *[f"- {n}" for n in page.notes], "")
+    records = ran_records(studies, ["descriptor_robustness_*"])  # the line under the heading, as make_results
+    if records:
+        page.md[1:1] = ["", ran_line(records)]
     md = (docs / "results.md").read_text()
     start, end = md.index("## 5. "), md.index("## 6. ")
     md = md[:start] + "\n".join(page.md).rstrip() + "\n\n" + md[end:]
@@ -180,21 +225,25 @@ def splice(studies: Path, docs: Path) -> None:
     rows = [ln for ln in new if ln.startswith("| `descriptor_robustness_")]
     cmds = [ln for ln in new if ln.startswith("python run.py") and "descriptor_robustness_" in ln]
     lines = md.splitlines()
+    # the claim (its title line and its evidence lines) and the notes, as make_results writes them
+    head = next((i for i, ln in enumerate(lines) if ln.startswith(f"- **{CLAIM}**")), None)
+    if head is not None and CLAIM in page.claims:
+        stop = head + 1
+        while stop < len(lines) and lines[stop].startswith("  - "):
+            stop += 1
+        lines[head:stop] = render_claims({CLAIM: page.claims[CLAIM]}, {})
+    notes = [ln for ln in lines if ln.startswith("- descriptor robustness, ")]
+    lines = _replace(lines, notes, [f"- {n}" for n in page.notes])
     old_rows = [ln for ln in lines if ln.startswith("| `descriptor_robustness_")]
     if old_rows and rows:
-        at = lines.index(old_rows[0])
-        lines = [ln for ln in lines if ln not in old_rows]
-        lines[at:at] = rows
         secs = lambda rs: sum(int(r.split("|")[2].strip()) for r in rs)  # noqa: E731
         for i, ln in enumerate(lines):
             if m := re.match(r"\| \*\*total\*\* \| \*\*(\d+) s", ln):
                 total = int(m.group(1)) - secs(old_rows) + secs(rows)
                 lines[i] = f"| **total** | **{total} s ({total / 60:.0f} min)** |"
+    lines = _replace(lines, old_rows, rows)
     old_cmds = [ln for ln in lines if ln.startswith("python run.py") and "descriptor_robustness_" in ln]
-    if old_cmds and cmds:
-        at = lines.index(old_cmds[0])
-        lines = [ln for ln in lines if ln not in old_cmds]
-        lines[at:at] = cmds
+    lines = _replace(lines, old_cmds, cmds)
     (docs / "results.md").write_text("\n".join(lines).rstrip() + "\n")
 
 

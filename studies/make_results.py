@@ -15,13 +15,11 @@ descriptor_robustness, time_profile, state_of_the_art.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import re
 import shutil
 import subprocess
-from datetime import datetime
 from pathlib import Path
 
 from studies import (
@@ -34,7 +32,7 @@ from studies import (
     stochastic,
     time_profile,
 )
-from studies.common import REPO, Page, text, wall_times
+from studies.common import REPO, Page, ran_line, ran_records, render_claims, text, wall_times
 
 
 def machine() -> str:
@@ -78,34 +76,6 @@ SECTION_RUNS = {
 }
 SECTION = re.compile(r"^## (\d+)\. ", re.M)
 RAN = re.compile(r"_(Ran on|Not rerun on) ")
-
-
-def ran_records(studies: Path, patterns: list[str]) -> list[dict]:
-    """The ran.json of every sweep below the directories `patterns` (globs in <studies>)."""
-    out = []
-    for pattern in patterns:
-        for d in sorted(studies.glob(pattern)):
-            for f in sorted([d / "ran.json", *d.glob("*/ran.json")]):
-                if f.is_file():
-                    out.append(json.loads(f.read_text()))
-    return out
-
-
-def ran_line(records: list[dict]) -> str:
-    """One line: the core the sweeps ran on, when, their wall time and the load they ran under."""
-    cores = sorted({r["core_commit"][:7] for r in records})
-    sha = sorted({r["core_sha1"][:8] for r in records})
-    t0 = min(datetime.fromisoformat(r["started"].replace("Z", "+00:00")) for r in records)
-    t1 = max(datetime.fromisoformat(r["ended"].replace("Z", "+00:00")) for r in records)
-    loads = [float(r[k].split()[0]) for r in records for k in ("load_start", "load_end")]
-    failed = [r for r in records if r.get("status") != "done"]
-    return (
-        f"_Ran on the C++ core of commit `{'`, `'.join(cores)}` (extension sha1 {', '.join(sha)}), "
-        f"{t0:%Y-%m-%d %H:%M}–{t1:%H:%M} UTC, {len(records)} sweep(s), "
-        f"{sum(int(r['wall_s']) for r in records):,} s of wall time in all, on {records[0]['cpu']} "
-        f"({records[0]['nproc']} cores), load average (1 min) {min(loads):.1f}–{max(loads):.1f} at the "
-        "sweeps' starts and ends" + (f"; {len(failed)} sweep(s) failed" if failed else "") + "._"
-    )
 
 
 def sections_of(md: str) -> dict[int, str]:
@@ -156,25 +126,6 @@ def place_sections(lines: list[str], studies: Path, old: str) -> list[str]:
         at = md.index("\n## Notes") + 1 if "\n## Notes" in md else len(md)
         md = md[:at] + kept + md[at:]
     return md.split("\n")
-
-
-def render_claims(claims: dict[str, list[tuple[str, str]]], sizes: dict[str, str]) -> list[str]:
-    """Each claim with its verdicts counted apart for the synthetic families and the real pairs, and each
-    evidence line with the number of pairs it rests on."""
-    out = []
-    for title, items in claims.items():
-        parts = []
-        for label, real in (("synthetic", False), ("real", True)):
-            group = [w for w, ev in items if ev.split(":")[0].startswith("real_") == real]
-            if group:
-                counts = {v: group.count(v) for v in dict.fromkeys(group)}
-                parts.append(f"{label}: " + ", ".join(f"{v} {n}" for v, n in counts.items()))
-        out.append(f"- **{title}** — " + "; ".join(parts) + f" (of {len(items)} data sets)")
-        for v, ev in items:
-            key, _, rest = ev.partition(":")
-            size = f" ({sizes[key]})" if key in sizes else ""
-            out.append(f"  - {key}{size}:{rest} → {v}")
-    return out
 
 
 def make_results(studies: Path, docs: Path) -> str:

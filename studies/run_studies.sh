@@ -14,7 +14,8 @@
 # Threads: one BLAS / OpenMP thread everywhere, and one C++ core thread (its pool reads OMP_NUM_THREADS),
 # except the profile study, whose core uses CORE_THREADS (default 2).
 # Data:    3dmatch kitti 3dlomatch (synthetic families, N pairs each), real_indoor real_outdoor
-#          (the real pairs of ../shared/data, dataset=shared_real by category)
+#          real_object (the real pairs of ../shared/data, dataset=shared_real by category; real_object, the
+#          bunny and dragon scans, only in the descriptor study by default)
 # Each sweep's directory is deleted first (RESUME=1 keeps it): a run directory that already holds results
 # is refused without resume=, and with it resumed (its finished pairs skipped whatever the config).
 # Each sweep writes <its directory>/ran.json (start, end, wall time, load averages, the core's commit), which
@@ -61,6 +62,7 @@ data_args() {  # the dataset overrides for one data key
       echo "dataset=synthetic dataset.family=$1 dataset.num_pairs=$N dataset.seed=0" ;;
     real_indoor) echo "dataset=shared_real dataset.category=indoor" ;;
     real_outdoor) echo "dataset=shared_real dataset.category=outdoor" ;;
+    real_object) echo "dataset=shared_real dataset.category=object" ;;
     *) echo "unknown data key $1" >&2; exit 2 ;;
   esac
 }
@@ -142,12 +144,14 @@ for study in "${STUDIES[@]}"; do
       done
       export OMP_NUM_THREADS=1 ;;
     descriptor)  # Fig. desc: every descriptor (fpfh, fcgf_lite, buffer, spinnet) on KITTI (the KITTI-like family and
-      # the 7 real outdoor pairs) and indoors (the 3DMatch-like family and the 4 real indoor pairs), the first
+      # the 7 real outdoor pairs), indoors (the 3DMatch-like family and the 4 real indoor pairs) and on the 2 real
+      # object scan pairs (so every real pair of ../shared/data), the first
       # $DESC_N synthetic pairs, seeds $DESC_SEEDS. SpinNet (~1 min a cloud on this CPU) and BUFFER describe each
       # cloud once a sweep whatever the seeds (the process keeps the described clouds, descriptor.cache_clouds),
-      # and the correspondence cache (a private one, emptied first) serves every ratio: 3 seeds took 32 min.
+      # and the correspondence cache (a private one, emptied first) serves every ratio: 3 seeds, 5 data sets: 34 min
+      # of sweeps on 2 shared cores (2026-12-07).
       [ "${DESC_KEEP_CACHE:-0}" = 1 ] || rm -rf "$OUT/_cache_descriptor"  # 1: a concurrent second invocation
-      for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch}; do
+      for d in ${DESC_DATA:-real_outdoor kitti real_indoor 3dmatch real_object}; do
         lim=""; synthetic "$d" && lim="limit=${DESC_N:-6}"
         # shellcheck disable=SC2046
         sweep "$OUT/descriptor_robustness_$d" +experiment=descriptor_robustness $(data_args "$d") $lim \

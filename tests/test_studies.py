@@ -3,6 +3,7 @@ quotes, and make_results renders a page from a small hand-made studies directory
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -246,6 +247,50 @@ def test_descriptor_study_splices_section_5(tmp_path):
     assert "Mean inlier ratio of the correspondences: fpfh 5.0 %, spinnet 20.0 %." in md
     assert "here: **holds**. RR at 100 % → 1 %: fpfh 100.0 → 75.0, spinnet 100.0 → 100.0" in md
     assert (docs / "figures" / "descriptor_robustness_indoor.png").is_file()
+
+
+def test_descriptor_splice_replaces_its_claim_notes_and_counts_trust(tmp_path):
+    """The splice replaces the descriptor claim in the recomputed list and the section's notes in the page's
+    notes (the other claims and notes stay), and counts the `trusted` verdict against the GT: at ratio 0.2
+    one wrong pose trusted (a false accept) and one right pose not (a false reject); failed rows have no
+    pose and are not counted."""
+    from studies import descriptor_robustness as dr
+
+    studies, docs = tmp_path / "studies", tmp_path / "docs"
+    base = dict(dataset="shared_real", backend="cpp", sampler="highpass", seed=0)
+    rows = []
+    for ratio in (1.0, 0.2, 0.01):
+        for i in range(4):
+            ok = i < 3
+            trusted = ok if ratio != 0.2 else {0: True, 1: False, 2: True, 3: True}[i]  # p1: FR, p3: FA
+            rows.append(dict(pair=f"p{i}", success=ok, trusted=trusted, descriptor="fpfh", ratio=ratio,
+                             **base))  # fmt: skip
+        rows.append(dict(pair="p4", success=False, trusted=False, descriptor="fpfh", ratio=ratio,
+                         error="RegistrationFailed: no clique", **base))  # fmt: skip
+    _run(studies / "descriptor_robustness_real_indoor" / "0", rows)
+    ran = dict(started="2026-12-07T02:16:47Z", ended="2026-12-07T02:25:20Z", wall_s=513, status="done",
+               load_start="1.50 1.2 1.0", load_end="2.25 2.0 1.5", core_commit="abcdef1234",
+               core_sha1="0123abcd99", cpu="CPU X", nproc=2)  # fmt: skip
+    (studies / "descriptor_robustness_real_indoor" / "ran.json").write_text(json.dumps(ran))
+    docs.mkdir()
+    claim = f"- **{dr.CLAIM}** — real: holds 1 (of 1 data sets)"
+    (docs / "results.md").write_text(
+        f"# R\n\n- **Other claim** — real: agrees 1\n  - real_indoor: x → agrees\n{claim}\n"
+        "  - real_indoor (9 pairs): OLD → holds\n- **Last claim** — real: agrees 1\n\n## 5. Old\n\nold\n\n"
+        "## 6. After\n\n## Notes\n\n- filter ablation, kitti: KEEP\n- descriptor robustness, x: OLD NOTE\n"
+    )
+    dr.splice(studies, docs)
+    md = (docs / "results.md").read_text()
+    assert "## 5. Descriptor robustness (paper Fig. desc)\n\n_Ran on the C++ core of commit `abcdef1` " in md
+    assert "2026-12-07 02:16–02:25 UTC, 1 sweep(s), 513 s of wall time in all, on CPU X (2 cores)" in md
+    assert "OLD" not in md and "- **Other claim** — real: agrees 1\n  - real_indoor: x → agrees\n" in md
+    assert "  - real_indoor (5 pairs): RR 100 % → 1 %: fpfh 60.0 → 60.0 → not tested" in md
+    assert "\n- **Last claim**" in md and "- filter ablation, kitti: KEEP" in md
+    assert "- descriptor robustness, real_indoor, fpfh: 3 failed row(s), e.g. `RegistrationFailed" in md
+    heading = "### real_indoor: real indoor pairs (3DMatch/3DLoMatch fragments) — 5 pairs"
+    assert _table_row(md, heading, "fpfh") == ["fpfh", "12", "9", "1", "1", "4, 3, 1, 1"]
+    t = pd.DataFrame(rows).assign(error=lambda d: d["error"].fillna(""))
+    assert dr.trust_counts(t, "fpfh", 1.0) == (4, 3, 0, 0)
 
 
 def test_make_results_names_each_sections_core_and_keeps_the_others(tmp_path):
