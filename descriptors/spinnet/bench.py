@@ -79,13 +79,14 @@ def describe_once(python: str, repo: Path, family: str, prec: str, threads: int,
     return out | {"load_average": round(os.getloadavg()[0], 2)}
 
 
-def rotation(threads: int, precision: str, n: int = 40) -> dict:
+def rotation(threads: int, precision: str, models: dict, n: int = 40) -> dict:
     path, voxel = CLOUDS["3dmatch"]
     pts = np.asarray(read_points(path), dtype=np.float64)
     kp = voxel_down(pts, voxel)
     kp = kp[np.random.default_rng(5).choice(len(kp), n, replace=False)]
     rot = random_rotation(np.random.default_rng(21))
-    d = SpinNetDescriptor(threads=threads, progress=False, precision=precision)
+    extra = {"model_3dmatch_int8": models["3dmatch"]} if precision == "int8" and "3dmatch" in models else {}
+    d = SpinNetDescriptor(threads=threads, progress=False, precision=precision, **extra)
     model = d.load("3dmatch")
     a = d.describe(model, pts, kp, 1.0)
     b = d.describe(model, pts @ rot.T, kp @ rot.T, 1.0)
@@ -184,7 +185,7 @@ def main(argv=None) -> None:
     if this_first != yard:
         out["ratio_to_" + this_first] = ratios(out["rounds"], this_first, args.families)
     if not args.no_rotation:
-        out["rotation_invariance"] = {prec: rotation(1, prec) for prec in dict(args.runs)}
+        out["rotation_invariance"] = {prec: rotation(1, prec, args.int8_model) for prec in dict(args.runs)}
     out["load_average_at_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps({k: v for k, v in out.items() if k != "rounds"}, indent=1))
     if args.json:
