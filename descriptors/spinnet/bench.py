@@ -55,23 +55,35 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def parse_run(text: str) -> tuple[str, int]:
-    prec, sep, threads = text.partition(":")
-    if not sep or prec not in ("float32", "int8") or not threads.isdigit() or int(threads) < 1:
-        raise argparse.ArgumentTypeError(f"a run is precision:threads (float32|int8 : >= 1), got {text!r}")
-    return prec, int(threads)
+def parse_run(text: str) -> tuple[str, int, str | None]:
+    """precision:threads[:DIR], DIR holding spinnet_<family>_int8.onnx (quantize.py --out DIR)."""
+    prec, _, rest = text.partition(":")
+    threads, _, folder = rest.partition(":")
+    if (
+        prec not in ("float32", "int8")
+        or not threads.isdigit()
+        or int(threads) < 1
+        or (folder and prec != "int8")
+    ):
+        raise argparse.ArgumentTypeError(
+            f"a run is precision:threads[:DIR] (float32|int8 : >= 1 [: int8 models' folder]), got {text!r}"
+        )
+    if folder and not Path(folder).is_dir():
+        raise argparse.ArgumentTypeError(f"run {text!r}: no folder {folder}")
+    return prec, int(threads), folder or None
 
 
-def describe_once(python: str, repo: Path, family: str, prec: str, threads: int, args) -> dict:
-    """One run in a fresh process of `python` (whose fastmac_exp must come from `repo`)."""
+def describe_once(python: str, repo: Path, family: str, prec: str, threads: int, folder, args) -> dict:
+    """One run in a fresh process of `python` (whose fastmac_exp must come from `repo`); `folder`: where the
+    int8 model is (None: the shipped one)."""
     path, voxel = CLOUDS[family]
     cmd = [
         python, str(ONCE), "--repo", str(repo), "--family", family, "--cloud", str(path),
         "--voxel", str(voxel), "--threads", str(threads), "--precision", prec,
         "--batch-size", str(args.batch_size), "--keypoints", str(getattr(args, f"keypoints_{family}")),
     ]  # fmt: skip
-    if prec == "int8" and args.int8_model.get(family) and repo == REPO:
-        cmd += ["--model", args.int8_model[family]]
+    if folder:
+        cmd += ["--model", str(Path(folder) / f"spinnet_{family}_int8.onnx")]
     done = subprocess.run(cmd, cwd=repo, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-2000:]}{done.stdout}")
@@ -79,13 +91,13 @@ def describe_once(python: str, repo: Path, family: str, prec: str, threads: int,
     return out | {"load_average": round(os.getloadavg()[0], 2)}
 
 
-def rotation(threads: int, precision: str, models: dict, n: int = 40) -> dict:
+def rotation(threads: int, precision: str, folder: str | None, n: int = 40) -> dict:
     path, voxel = CLOUDS["3dmatch"]
     pts = np.asarray(read_points(path), dtype=np.float64)
     kp = voxel_down(pts, voxel)
     kp = kp[np.random.default_rng(5).choice(len(kp), n, replace=False)]
     rot = random_rotation(np.random.default_rng(21))
-    extra = {"model_3dmatch_int8": models["3dmatch"]} if precision == "int8" and "3dmatch" in models else {}
+    extra = {"model_3dmatch_int8": str(Path(folder) / "spinnet_3dmatch_int8.onnx")} if folder else {}
     d = SpinNetDescriptor(threads=threads, progress=False, precision=precision, **extra)
     model = d.load("3dmatch")
     a = d.describe(model, pts, kp, 1.0)
@@ -123,7 +135,8 @@ def main(argv=None) -> None:
         nargs="+",
         type=parse_run,
         default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2")],
-        help="this checkout's runs, precision:onnxruntime threads (the first: this build's yardstick)",
+        help="this checkout's runs, precision:onnxruntime threads[:folder of int8 models] (the first: this "
+        "build's yardstick)",
     )
     ap.add_argument("--against", type=Path, default=None, help="another checkout, built in PATH/.venv")
     ap.add_argument("--against-python", default=None, help="its interpreter (default PATH/.venv/bin/python)")
@@ -137,10 +150,6 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=1, help="rounds, every run once a round")
     ap.add_argument("--keypoints-3dmatch", type=int, default=400)
     ap.add_argument("--keypoints-kitti", type=int, default=1000)
-    ap.add_argument(
-        "--int8-model", nargs=2, action="append", default=[], metavar=("FAMILY", "PATH"),
-        help="time this INT8 model of the family instead of the shipped one (this build's int8 runs)",
-    )  # fmt: skip
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--families", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
     ap.add_argument("--no-rotation", action="store_true", help="skip the rotation-invariance check")
@@ -148,16 +157,20 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
-    args.int8_model = dict(args.int8_model)
-    runs = [("this", REPO, sys.executable, prec, t) for prec, t in args.runs]
+    runs = [("this", REPO, sys.executable, *run) for run in args.runs]
     other = []
     if args.against is not None:
         python = args.against_python or str(args.against / ".venv" / "bin" / "python")
         if not Path(python).exists():
             ap.error(f"--against: no interpreter {python} (build that checkout in its own .venv)")
-        other = [("against", args.against.resolve(), python, prec, t) for prec, t in args.against_runs]
+        if any(run[2] for run in args.against_runs):
+            ap.error("--against-runs take the other build's own models (no folder)")
+        other = [("against", args.against.resolve(), python, *run) for run in args.against_runs]
     runs = other + runs
-    label = {run: f"{run[0]}_{run[3]}_threads{run[4]}" for run in runs}
+    label = {
+        run: f"{run[0]}_{run[3]}_threads{run[4]}" + (f"_{Path(run[5]).name}" if run[5] else "")
+        for run in runs
+    }
     out = {
         "cpu": cpu_model(),
         "cpus": os.cpu_count(),
@@ -172,7 +185,7 @@ def main(argv=None) -> None:
     for r in range(args.repeats):
         k = r % len(jobs)
         for run, fam in jobs[k:] + jobs[:k]:
-            res = describe_once(run[2], run[1], fam, run[3], run[4], args)
+            res = describe_once(run[2], run[1], fam, run[3], run[4], run[5], args)
             out["rounds"][label[run]][fam].append(res)
             print(f"round {r} {label[run]} {fam}", json.dumps(res), flush=True)
     out["median_seconds_a_keypoint"] = {
@@ -185,7 +198,9 @@ def main(argv=None) -> None:
     if this_first != yard:
         out["ratio_to_" + this_first] = ratios(out["rounds"], this_first, args.families)
     if not args.no_rotation:
-        out["rotation_invariance"] = {prec: rotation(1, prec, args.int8_model) for prec in dict(args.runs)}
+        out["rotation_invariance"] = {
+            label[run]: rotation(1, run[3], run[5]) for run in runs if run[0] == "this" and run[4] == 1
+        }
     out["load_average_at_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps({k: v for k, v in out.items() if k != "rounds"}, indent=1))
     if args.json:

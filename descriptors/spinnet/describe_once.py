@@ -70,7 +70,7 @@ def speed(
         "cloud": Path(cloud).name,
         "points": len(pts),
         "keypoints": n,
-        "model": Path(m.desc_path).name,
+        "model": str(m.desc_path),
         "cell_table_s_once_a_process": round(t_grid, 2),
         "seconds_a_cloud": round(total, 3),
         "seconds_a_keypoint": round(total / n, 5),
