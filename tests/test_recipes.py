@@ -21,6 +21,8 @@ RECIPES = [
     "descriptors/buffer/matched.py",
     "descriptors/spinnet/export.py",
     "descriptors/spinnet/bench.py",
+    "descriptors/spinnet/describe_once.py",
+    "descriptors/spinnet/agreement.py",
     "descriptors/spinnet/quantize.py",
     "descriptors/spinnet/keypoints_study.py",
     "descriptors/fcgf_lite/train.py",

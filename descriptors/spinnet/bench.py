@@ -1,17 +1,23 @@
 """SpinNet's cost on a CPU and its rotation invariance, for descriptors/spinnet/MODEL_CARD.md.
 
-    cd /work/main && python descriptors/spinnet/bench.py --json descriptors/spinnet/speed.json
+    python descriptors/spinnet/bench.py --json descriptors/spinnet/speed.json
+    python descriptors/spinnet/bench.py --against /work/wt-spin-base --repeats 3 --json speed_against.json
 
-Describes a real 3DMatch fragment (redkitchen cloud_bin_0, 400 farthest-point keypoints, the default) and a
-KITTI scan (seq 00 frame 94, 1,000 random keypoints, the default) from an empty cache with onnxruntime on
-`--threads` threads, at each `--precision` in turn in one process (float32: the published weights as exported,
-the grouped cells into the network; int8: the C++ pooling and the quantised convolutions): seconds a cloud,
-per keypoint, the network's and the preparation's part (patches + C++ grouping or pooling, on a second thread
-while the network runs: `wait_for_patches` is what the network waited for it), and the ratio to the first
-precision. Prints the CPU model and the load average before and after. Then rotation invariance at each
-precision: the fragment and 40 of its keypoints rotated about the sensor; the mean cosine between a keypoint's
-descriptors before and after, and how often the rotated keypoint's descriptor is the nearest of the 40.
-Needs ../shared/data; a shared machine only makes it slower.
+Describes a real 3DMatch fragment (redkitchen cloud_bin_0, farthest-point keypoints) and a KITTI scan (seq 00
+frame 94, random keypoints) at `--keypoints-3dmatch` / `--keypoints-kitti` a cloud (400 / 1,000 by default:
+the counts of the code before issue 50, so that every build describes the same keypoints), from an empty
+cache, each run in a fresh process (`describe_once.py`): seconds a cloud, per keypoint, the network's and the
+preparation's part (patches + C++ grouping or pooling; `wait_for_patches` is what the network waited for it).
+`--runs` are this checkout's (precision:onnxruntime threads); `--against PATH` adds the runs `--against-runs`
+of another checkout's build, run by that checkout's own interpreter (`PATH/.venv/bin/python`, e.g. an older
+commit in its own worktree), so both builds are measured side by side in one run: `--repeats` rounds, every
+run once a round, the order rotated each round, so that a change of the machine's load falls on all runs
+alike. Ratios: seconds a keypoint of the yardstick (the other build's first run, else this build's first
+run) and of this build's first run over each run's, per round (paired) and of the medians. Prints the CPU
+model and the load average before and after. Then rotation invariance at each of this build's precisions
+(in this process): the fragment and 40 of its keypoints rotated about the sensor; the mean cosine between a
+keypoint's descriptors before and after, and how often the rotated keypoint's descriptor is the nearest of
+the 40. Needs ../shared/data; a shared machine only makes it slower.
 """
 
 from __future__ import annotations
@@ -19,8 +25,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
+import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +38,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.machine import cpu_model  # noqa: E402
 from fastmac_exp.descriptors.patches import voxel_down  # noqa: E402
-from fastmac_exp.descriptors.spinnet import SpinNetDescriptor, grid_for  # noqa: E402
+from fastmac_exp.descriptors.spinnet import SpinNetDescriptor  # noqa: E402
 from fastmac_exp.io import read_points  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -39,6 +46,7 @@ CLOUDS = {
     "3dmatch": (DATA / "teaser_3dmatch_redkitchen" / "cloud_bin_0.ply", 0.05),
     "kitti": (DATA / "kitti_seq00_scancontext" / "000094.bin", 0.3),
 }
+ONCE = Path(__file__).resolve().parent / "describe_once.py"
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -47,41 +55,50 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def speed(family: str, threads: int, precision: str, batch_size: int) -> dict:
+def parse_run(text: str) -> tuple[str, int, str | None]:
+    """precision:threads[:DIR], DIR holding spinnet_<family>_int8.onnx (quantize.py --out DIR)."""
+    prec, _, rest = text.partition(":")
+    threads, _, folder = rest.partition(":")
+    if (
+        prec not in ("float32", "int8")
+        or not threads.isdigit()
+        or int(threads) < 1
+        or (folder and prec != "int8")
+    ):
+        raise argparse.ArgumentTypeError(
+            f"a run is precision:threads[:DIR] (float32|int8 : >= 1 [: int8 models' folder]), got {text!r}"
+        )
+    if folder and not Path(folder).is_dir():
+        raise argparse.ArgumentTypeError(f"run {text!r}: no folder {folder}")
+    return prec, int(threads), folder or None
+
+
+def describe_once(python: str, repo: Path, family: str, prec: str, threads: int, folder, args) -> dict:
+    """One run in a fresh process of `python` (whose fastmac_exp must come from `repo`); `folder`: where the
+    int8 model is (None: the shipped one)."""
     path, voxel = CLOUDS[family]
-    pts = np.asarray(read_points(path), dtype=np.float64)
-    d = SpinNetDescriptor(
-        threads=threads, progress=False, precision=precision, batch_size=batch_size, cache_clouds=0
-    )
-    model = d.load(family)
-    t0 = time.perf_counter()
-    grid_for(model.params)
-    t_grid = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    kp, _ = d.features(pts, voxel, family=family)
-    total = time.perf_counter() - t0
-    t = d.last_timings
-    n = len(kp)
-    return {
-        "cloud": path.name,
-        "points": len(pts),
-        "keypoints": n,
-        "cell_table_s_once_a_process": round(t_grid, 2),
-        "seconds_a_cloud": round(total, 2),
-        "seconds_a_keypoint": round(total / n, 4),
-        "network_s_a_keypoint": round(t["network_s"] / n, 4),
-        "patches_and_grouping_s_a_keypoint": round(t["patches_s"] / n, 4),
-        "wait_for_patches_s_a_keypoint": round(t["wait_for_patches_s"] / n, 4),
-    }
+    cmd = [
+        python, str(ONCE), "--repo", str(repo), "--family", family, "--cloud", str(path),
+        "--voxel", str(voxel), "--threads", str(threads), "--precision", prec,
+        "--batch-size", str(args.batch_size), "--keypoints", str(getattr(args, f"keypoints_{family}")),
+    ]  # fmt: skip
+    if folder:
+        cmd += ["--model", str(Path(folder) / f"spinnet_{family}_int8.onnx")]
+    done = subprocess.run(cmd, cwd=repo, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-2000:]}{done.stdout}")
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    return out | {"load_average": round(os.getloadavg()[0], 2)}
 
 
-def rotation(threads: int, precision: str, n: int = 40) -> dict:
+def rotation(threads: int, precision: str, folder: str | None, n: int = 40) -> dict:
     path, voxel = CLOUDS["3dmatch"]
     pts = np.asarray(read_points(path), dtype=np.float64)
     kp = voxel_down(pts, voxel)
     kp = kp[np.random.default_rng(5).choice(len(kp), n, replace=False)]
     rot = random_rotation(np.random.default_rng(21))
-    d = SpinNetDescriptor(threads=threads, progress=False, precision=precision)
+    extra = {"model_3dmatch_int8": str(Path(folder) / "spinnet_3dmatch_int8.onnx")} if folder else {}
+    d = SpinNetDescriptor(threads=threads, progress=False, precision=precision, **extra)
     model = d.load("3dmatch")
     a = d.describe(model, pts, kp, 1.0)
     b = d.describe(model, pts @ rot.T, kp @ rot.T, 1.0)
@@ -93,46 +110,99 @@ def rotation(threads: int, precision: str, n: int = 40) -> dict:
     }
 
 
+def ratios(rounds: dict, yard: str, families: list[str]) -> dict:
+    """Per run and family: the yardstick's seconds a keypoint over the run's, paired by round (min, median,
+    max) and of the medians."""
+    out = {}
+    for key, per_family in rounds.items():
+        out[key] = {}
+        for fam in families:
+            a = [r["seconds_a_keypoint"] for r in rounds[yard][fam]]
+            b = [r["seconds_a_keypoint"] for r in per_family[fam]]
+            paired = sorted(x / y for x, y in zip(a, b, strict=True))
+            out[key][fam] = {
+                "of_medians": round(statistics.median(a) / statistics.median(b), 2),
+                "paired_min_median_max": [round(paired[0], 2), round(statistics.median(paired), 2),
+                                          round(paired[-1], 2)],
+            }  # fmt: skip
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--runs",
         nargs="+",
-        default=["float32:1", "int8:1", "int8:2"],
-        help="precision:onnxruntime threads, in order (the first is the ratios' yardstick: today's default)",
+        type=parse_run,
+        default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2")],
+        help="this checkout's runs, precision:onnxruntime threads[:folder of int8 models] (the first: this "
+        "build's yardstick)",
     )
+    ap.add_argument("--against", type=Path, default=None, help="another checkout, built in PATH/.venv")
+    ap.add_argument("--against-python", default=None, help="its interpreter (default PATH/.venv/bin/python)")
+    ap.add_argument(
+        "--against-runs",
+        nargs="+",
+        type=parse_run,
+        default=[parse_run(r) for r in ("float32:1", "float32:2")],
+        help="the other build's runs (the first: the yardstick of every ratio)",
+    )
+    ap.add_argument("--repeats", type=int, default=1, help="rounds, every run once a round")
+    ap.add_argument("--keypoints-3dmatch", type=int, default=400)
+    ap.add_argument("--keypoints-kitti", type=int, default=1000)
     ap.add_argument("--batch-size", type=int, default=8)
-    ap.add_argument("--families", nargs="+", default=list(CLOUDS))
+    ap.add_argument("--families", nargs="+", default=list(CLOUDS), choices=list(CLOUDS))
+    ap.add_argument("--no-rotation", action="store_true", help="skip the rotation-invariance check")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    runs = [(r.split(":")[0], int(r.split(":")[1])) for r in args.runs]
+    if args.repeats < 1:
+        ap.error("--repeats must be >= 1")
+    runs = [("this", REPO, sys.executable, *run) for run in args.runs]
+    other = []
+    if args.against is not None:
+        python = args.against_python or str(args.against / ".venv" / "bin" / "python")
+        if not Path(python).exists():
+            ap.error(f"--against: no interpreter {python} (build that checkout in its own .venv)")
+        if any(run[2] for run in args.against_runs):
+            ap.error("--against-runs take the other build's own models (no folder)")
+        other = [("against", args.against.resolve(), python, *run) for run in args.against_runs]
+    runs = other + runs
+    label = {
+        run: f"{run[0]}_{run[3]}_threads{run[4]}" + (f"_{Path(run[5]).name}" if run[5] else "")
+        for run in runs
+    }
     out = {
         "cpu": cpu_model(),
-        "batch_size": args.batch_size,
-        "load_average_at_start": os.getloadavg()[0],
         "cpus": os.cpu_count(),
-        "speed": {},
+        "batch_size": args.batch_size,
+        "keypoints": {f: getattr(args, f"keypoints_{f}") for f in args.families},
+        "this": str(REPO),
+        "against": None if args.against is None else str(args.against.resolve()),
+        "load_average_at_start": round(os.getloadavg()[0], 2),
+        "rounds": {label[run]: {f: [] for f in args.families} for run in runs},
     }
-    for prec, threads in runs:
-        key = f"{prec}_threads{threads}"
-        out["speed"][key] = {fam: speed(fam, threads, prec, args.batch_size) for fam in args.families}
-        print(key, json.dumps(out["speed"][key]), flush=True)
-    keys = list(out["speed"])
-    first = keys[0]
-    out["seconds_a_keypoint_ratio_to_" + first] = {
-        prec: {
-            fam: round(
-                out["speed"][first][fam]["seconds_a_keypoint"]
-                / out["speed"][prec][fam]["seconds_a_keypoint"],
-                2,
-            )
-            for fam in args.families
+    jobs = [(run, fam) for run in runs for fam in args.families]
+    for r in range(args.repeats):
+        k = r % len(jobs)
+        for run, fam in jobs[k:] + jobs[:k]:
+            res = describe_once(run[2], run[1], fam, run[3], run[4], run[5], args)
+            out["rounds"][label[run]][fam].append(res)
+            print(f"round {r} {label[run]} {fam}", json.dumps(res), flush=True)
+    out["median_seconds_a_keypoint"] = {
+        key: {f: statistics.median(x["seconds_a_keypoint"] for x in v[f]) for f in args.families}
+        for key, v in out["rounds"].items()
+    }
+    yard = label[runs[0]]
+    this_first = label[next(run for run in runs if run[0] == "this")]
+    out["ratio_to_" + yard] = ratios(out["rounds"], yard, args.families)
+    if this_first != yard:
+        out["ratio_to_" + this_first] = ratios(out["rounds"], this_first, args.families)
+    if not args.no_rotation:
+        out["rotation_invariance"] = {
+            label[run]: rotation(1, run[3], run[5]) for run in runs if run[0] == "this" and run[4] == 1
         }
-        for prec in keys
-    }
-    out["rotation_invariance"] = {prec: rotation(1, prec) for prec in dict(runs)}
-    out["load_average_at_end"] = os.getloadavg()[0]
-    print(json.dumps(out, indent=1))
+    out["load_average_at_end"] = round(os.getloadavg()[0], 2)
+    print(json.dumps({k: v for k, v in out.items() if k != "rounds"}, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
 
