@@ -72,15 +72,25 @@ LABELS = {
 # the methods: each returns (pose, {stage: ms})
 
 
-def learned_descriptor(name: str):
-    """A learned front end by its config name, with the config's defaults (conf/descriptor/NAME.yaml);
-    fcgf without FCGF_CHECKPOINT: random checkpoint-shaped models (`RandomFcgf`)."""
+def learned_descriptor(spec: str):
+    """A learned front end by its config name, with the config's defaults (conf/descriptor/NAME.yaml)
+    and any `NAME:key=value,key=value` overrides (`buffer:threads=2`); fcgf without FCGF_CHECKPOINT:
+    random checkpoint-shaped models (`RandomFcgf`)."""
+    import yaml
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
+    name, _, overrides = spec.partition(":")
     if name == "fcgf" and not os.environ.get("FCGF_CHECKPOINT"):
+        if overrides:
+            raise SystemExit("fcgf with random weights takes no overrides")
         return RandomFcgf()
     node = OmegaConf.load(REPO / "conf" / "descriptor" / f"{name}.yaml")
+    for item in filter(None, overrides.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or key not in node:
+            raise SystemExit(f"--learned {spec}: {item!r} is not key=value with a key of {name}.yaml")
+        node[key] = yaml.safe_load(value) if value else None  # typed as YAML would type it
     if "cache_clouds" in node:  # BUFFER, SpinNet: each round describes again (else the rounds time a cache)
         node.cache_clouds = 0
     return instantiate(node)
@@ -299,8 +309,9 @@ def main(argv: list[str] | None = None) -> int:
         "--learned",
         nargs="*",
         default=[],
-        metavar="NAME",
-        help="also the project with these learned front ends (buffer, fcgf, fcgf_lite, spinnet)",
+        metavar="NAME[:k=v,...]",
+        help="also the project with these learned front ends (buffer, fcgf, fcgf_lite, spinnet), each with "
+        "optional overrides of its config (buffer:threads=2,batch_size=32); a name may repeat",
     )
     ap.add_argument("--threads", type=int, default=0, help="the core's threads (OMP_NUM_THREADS; 0: all)")
     ap.add_argument("--json", type=Path, default=None)
@@ -324,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             print("kiss-matcher is not installed (pip install kiss-matcher): its column is skipped")
             methods.remove("kiss_matcher")
-    learned = {f"project_{name}": learned_descriptor(name) for name in args.learned}
+    learned = {f"project_{spec}": learned_descriptor(spec) for spec in args.learned}
     for key in learned:
         LABELS[key] = f"project ({key[8:]})"
     methods += list(learned)

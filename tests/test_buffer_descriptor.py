@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 
 from fastmac_exp.descriptors.buffer import (
     SHIPPED,
@@ -363,6 +364,27 @@ def test_config_and_graph_thresholds():
     assert mac_params_for("3dmatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("3dlomatch", "spinnet").graph.threshold == 0.85
     assert mac_params_for("kitti", "spinnet").graph.threshold == 0.999
+
+
+def test_sessions_do_not_spin_and_threads_give_the_same_descriptors(room):
+    """The config's default is one onnxruntime thread a core; its workers must not spin (the patch thread
+    beside them needs the core, docs in descriptors/buffer/MODEL_CARD.md), and the thread count must not
+    change what is described (a cache or a study would otherwise depend on the machine)."""
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        for name in ("buffer", "spinnet"):
+            cfg = compose(config_name="config", overrides=[f"descriptor={name}"])
+            assert cfg.descriptor.threads == 0, name
+    kp = room[np.random.default_rng(4).choice(len(room), 40, replace=False)]
+    out = {}
+    for threads in (1, 2):
+        d = BufferDescriptor(threads=threads, progress=False, cache_clouds=0, precision="int8")
+        model = d.load("3dmatch")
+        for sess in (model.desc, model.ref):
+            opts = sess.get_session_options()
+            assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+            assert opts.intra_op_num_threads == threads
+        out[threads] = d.describe(model, room, kp, 1.0)
+    np.testing.assert_array_equal(out[1], out[2])
 
 
 GOLDEN = REPO / "tests" / "data" / "buffer_golden.npz"
