@@ -176,7 +176,7 @@ def test_config_and_family():
         cfg = compose("config", overrides=["descriptor=spinnet"])
     d = instantiate(cfg.descriptor, precision="float32")  # int8: tests/test_spinnet_int8.py
     assert isinstance(d, SpinNetDescriptor) and d.name == "spinnet" and d.graph_key == "spinnet"
-    assert d.max_keypoints is None and d.sampling is None and d.threads == 1
+    assert d.max_keypoints is None and d.sampling is None and d.threads == 0
     assert d.model_for("3dlomatch").desc_path.name == "spinnet_3dmatch.onnx"
     assert d.model_for("kitti").desc_path.name == "spinnet_kitti.onnx"
     assert d.model_for("kitti").params.align == "none" and d.model_for("3dmatch").params.align == "pca"
