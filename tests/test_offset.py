@@ -89,3 +89,25 @@ def test_a_cached_far_pair_registers_exactly_as_described(tmp_path):
     assert np.abs(stored.src.mean(axis=0)).max() < 50.0  # the pair-centred frame
     assert np.abs(described.corr.src.mean(axis=0) - far.src_cloud.mean(axis=0)).max() < 50.0  # the original
     np.testing.assert_array_equal(cached.corr.src, described.corr.src)
+
+
+def test_the_offset_is_the_rounded_mean_of_the_centroids_wherever_the_points_lie():
+    """The min / max shortcut decides only clouds wholly within CENTRE_BEYOND / 2 of the origin; the rest
+    take the centroids' mean as before (a cloud reaching past it with its centre near the origin, one centred
+    just inside CENTRE_BEYOND, one beyond it, one with a NaN)."""
+    from fastmac_exp.geometry.offset import CENTRE_BEYOND
+
+    rng = np.random.default_rng(3)
+    unit = rng.uniform(-1, 1, (500, 3))
+    wide = unit * [0.9 * CENTRE_BEYOND, 1.0, 1.0]  # points beyond CENTRE_BEYOND / 2, centre near 0
+    assert np.abs(wide).max() > CENTRE_BEYOND / 2 and not common_offset(wide, wide).any()
+    inside = unit + [0.99 * CENTRE_BEYOND, 0, 0]
+    assert not common_offset(inside, inside + 1).any()
+    beyond = unit + [1.2 * CENTRE_BEYOND, -3.3 * CENTRE_BEYOND, 7.0]
+    mid = np.mean([beyond.mean(0), (beyond + 2).mean(0)], axis=0)
+    np.testing.assert_array_equal(common_offset(beyond, beyond + 2), np.round(mid))
+    assert np.abs(common_offset(beyond, beyond + 2) - [1201, -3299, 8]).max() <= 1
+    nan = unit.copy()
+    nan[7, 1] = np.nan
+    assert not common_offset(nan, unit).any()  # as before: a NaN centre is not beyond anything
+    assert not common_offset(None, np.zeros((0, 3))).any()
