@@ -358,8 +358,11 @@ def test_bad_impl_and_voxel_say_what():
 # -- mesh resolution ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("loops", ["auto", "generic"])
 @pytest.mark.parametrize("case", ["scan", "duplicates", "outliers", "line", "two"])
-def test_nearest_other_distances_equal_a_kd_tree(case):
+def test_nearest_other_distances_equal_a_kd_tree(monkeypatch, case, loops):
+    """Bitwise the k-d tree's distances, by the AVX-512 minimum and the portable loops."""
+    monkeypatch.setenv("FASTMAC_RESOLUTION_MIN", loops)
     rng = np.random.default_rng(8)
     pts = {
         "scan": scan(9, 20000),

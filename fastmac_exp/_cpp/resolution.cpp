@@ -12,6 +12,10 @@
 #include <stdexcept>
 #include <vector>
 
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
 #include "mac_core.hpp"
 #include "parallel.hpp"
 #include "point_grid.hpp"
@@ -50,6 +54,40 @@ double min_other_d2(double x, double y, double z, const double *__restrict qx, c
     std::memcpy(&out, &best, 8);
     return best == std::numeric_limits<int64_t>::max() ? std::numeric_limits<double>::infinity() : out;
 }
+
+#if defined(__GNUC__) && defined(__x86_64__)
+// min_other_d2 in one pass of AVX-512: the same squared distances (the same operations in the same order,
+// no FMA: -ffp-contract=off) and their exact minimum, the query's own position masked to +inf.
+__attribute__((target("avx512f"))) double min_other_d2_avx512(double x, double y, double z, const double *qx,
+                                                               const double *qy, const double *qz, int64_t m,
+                                                               int64_t self) {
+    const __m512d px = _mm512_set1_pd(x), py = _mm512_set1_pd(y), pz = _mm512_set1_pd(z);
+    const __m512d inf = _mm512_set1_pd(std::numeric_limits<double>::infinity());
+    __m512d best = inf;
+    for (int64_t t = 0; t < m; t += 8) {
+        __mmask8 lanes = m - t >= 8 ? __mmask8(0xff) : __mmask8((1u << (m - t)) - 1u);
+        if (self >= t && self < t + 8) lanes &= __mmask8(~(1u << (self - t)));
+        const __m512d ex = _mm512_sub_pd(px, _mm512_maskz_loadu_pd(lanes, qx + t));
+        const __m512d ey = _mm512_sub_pd(py, _mm512_maskz_loadu_pd(lanes, qy + t));
+        const __m512d ez = _mm512_sub_pd(pz, _mm512_maskz_loadu_pd(lanes, qz + t));
+        const __m512d d2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ex, ex), _mm512_mul_pd(ey, ey)), _mm512_mul_pd(ez, ez));
+        best = _mm512_mask_min_pd(best, lanes, best, d2);
+    }
+    return _mm512_reduce_min_pd(best);
+}
+
+// FASTMAC_RESOLUTION_MIN=generic: the portable loops (read each call, for tests and benchmarks)
+bool min_avx512() {
+    static const bool cpu = __builtin_cpu_supports("avx512f");
+    return cpu && !env_is("FASTMAC_RESOLUTION_MIN", "generic");
+}
+#else
+bool min_avx512() { return false; }
+double min_other_d2_avx512(double, double, double, const double *, const double *, const double *, int64_t,
+                           int64_t) {
+    return 0.0;
+}
+#endif
 
 }  // namespace
 
@@ -107,6 +145,7 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
 
     const int64_t ncell = int64_t(g.cell_key.size());
     nthreads = resolve_threads(nthreads, n);
+    const bool use512 = min_avx512();
     DynamicRange range(0, ncell, 64);
     parallel_region(nthreads, [&](int) {
         std::vector<double> qx, qy, qz, dd;
@@ -132,7 +171,8 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
                     const double x = g.sx[s], y = g.sy[s], z = g.sz[s];
                     // the query itself sits at one position of the candidates: the minimum of both sides
                     const int64_t self = own + (s - first);
-                    double best = min_other_d2(x, y, z, qx.data(), qy.data(), qz.data(), m, self, dd.data());
+                    double best = use512 ? min_other_d2_avx512(x, y, z, qx.data(), qy.data(), qz.data(), m, self)
+                                         : min_other_d2(x, y, z, qx.data(), qy.data(), qz.data(), m, self, dd.data());
                     // rings 2, 3, ... while a point there could be closer (ring r is >= (r - 1) h away, less a
                     // hair for a point that rounding put in the next cell)
                     const double hh = g.h * (1.0 - 1e-9);
