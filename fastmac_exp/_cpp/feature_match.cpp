@@ -189,8 +189,10 @@ void principal_axes(const double *b, int64_t nb, int64_t dim, std::vector<double
     for (int64_t i = 0; i < nb; i += stride) {
         for (int64_t d = 0; d < dim; ++d) y[size_t(d)] = b[i * dim + d] - mean[size_t(d)];
         for (int64_t d = 0; d < dim; ++d)
-            for (int64_t e = 0; e < dim; ++e) cov[size_t(d * dim + e)] += y[size_t(d)] * y[size_t(e)];
+            for (int64_t e = d; e < dim; ++e) cov[size_t(d * dim + e)] += y[size_t(d)] * y[size_t(e)];
     }
+    for (int64_t d = 0; d < dim; ++d)  // the lower triangle: the same products summed in the same order
+        for (int64_t e = 0; e < d; ++e) cov[size_t(d * dim + e)] = cov[size_t(e * dim + d)];
     const int k = int(std::min<int64_t>(kAxes, dim));
     axes.assign(size_t(k * dim), 0.0);
     for (int q = 0; q < k; ++q)
@@ -224,7 +226,7 @@ void principal_axes(const double *b, int64_t nb, int64_t dim, std::vector<double
 // the coordinate (on the principal axes) of largest spread, recursively, the first part a multiple of
 // `leaf`. Deterministic.
 std::vector<int64_t> tree_order(const double *x, int64_t n, int64_t dim, int64_t leaf, const std::vector<double> &mean,
-                                const std::vector<double> &axes) {
+                                const std::vector<double> &axes, int nthreads) {
     struct Item {
         float p[kAxes];
         int64_t row;
@@ -234,7 +236,7 @@ std::vector<int64_t> tree_order(const double *x, int64_t n, int64_t dim, int64_t
     for (int q = 0; q < k; ++q)
         for (int64_t d = 0; d < dim; ++d) at[size_t(d * kAxes + q)] = axes[size_t(q * dim + d)];
     std::vector<Item> it(static_cast<size_t>(n));
-    for (int64_t i = 0; i < n; ++i) {
+    parallel_for(0, n, nthreads, 1024, [&](int64_t i, int) {
         double acc[kAxes] = {0};
         for (int64_t d = 0; d < dim; ++d) {
             const double y = x[i * dim + d] - mean[size_t(d)];
@@ -243,15 +245,18 @@ std::vector<int64_t> tree_order(const double *x, int64_t n, int64_t dim, int64_t
         Item &t = it[size_t(i)];
         t.row = i;
         for (int q = 0; q < kAxes; ++q) t.p[q] = std::isfinite(acc[q]) ? float(acc[q]) : 0.0f;
-    }
-    std::vector<std::pair<int64_t, int64_t>> stack{{0, n}};
+    });
+    // A range's split depends on its rows alone, so the ranges below a split are independent: the top
+    // levels split here, the subtrees below them in parallel, the same order as splitting one at a time.
+    std::vector<std::pair<int64_t, int64_t>> top{{0, n}}, below;
+    const int64_t want = nthreads > 1 && n >= 64 * leaf ? 4 * int64_t(nthreads) : 1;
     std::vector<uint64_t> keys;
     std::vector<Item> tmp;
-    while (!stack.empty()) {
-        const auto [lo, hi] = stack.back();
-        stack.pop_back();
+    // splits [lo, hi) at its median (a leaf: not at all), the two halves appended to `out`
+    auto split = [&](int64_t lo, int64_t hi, std::vector<uint64_t> &kbuf, std::vector<Item> &ibuf,
+                     std::vector<std::pair<int64_t, int64_t>> &out) {
         const int64_t m = hi - lo;
-        if (m <= leaf) continue;
+        if (m <= leaf) return;
         double s1[kAxes] = {0}, s2[kAxes] = {0};
         for (int64_t i = lo; i < hi; ++i)
             for (int q = 0; q < kAxes; ++q) s1[q] += it[size_t(i)].p[q], s2[q] += double(it[size_t(i)].p[q]) * it[size_t(i)].p[q];
@@ -260,20 +265,38 @@ std::vector<int64_t> tree_order(const double *x, int64_t n, int64_t dim, int64_t
             if (s2[q] - s1[q] * s1[q] / double(m) > s2[axis] - s1[axis] * s1[axis] / double(m)) axis = q;
         const int64_t half = std::max(leaf, (m / 2) / leaf * leaf);
         // the median by integer keys: the coordinate's bits in an order-preserving form, then the position
-        keys.resize(size_t(m));
+        kbuf.resize(size_t(m));
         for (int64_t i = 0; i < m; ++i) {
             uint32_t u;
             std::memcpy(&u, &it[size_t(lo + i)].p[axis], sizeof u);
             u = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
-            keys[size_t(i)] = (uint64_t(u) << 32) | uint64_t(i);
+            kbuf[size_t(i)] = (uint64_t(u) << 32) | uint64_t(i);
         }
-        std::nth_element(keys.begin(), keys.begin() + half, keys.end());
-        tmp.resize(size_t(m));
-        for (int64_t i = 0; i < m; ++i) tmp[size_t(i)] = it[size_t(lo + int64_t(keys[size_t(i)] & 0xffffffffu))];
-        std::copy(tmp.begin(), tmp.end(), it.begin() + lo);
-        stack.push_back({lo, lo + half});
-        stack.push_back({lo + half, hi});
+        std::nth_element(kbuf.begin(), kbuf.begin() + half, kbuf.end());
+        ibuf.resize(size_t(m));
+        for (int64_t i = 0; i < m; ++i) ibuf[size_t(i)] = it[size_t(lo + int64_t(kbuf[size_t(i)] & 0xffffffffu))];
+        std::copy(ibuf.begin(), ibuf.end(), it.begin() + lo);
+        out.push_back({lo, lo + half});
+        out.push_back({lo + half, hi});
+    };
+    while (int64_t(top.size()) < want) {
+        below.clear();
+        for (const auto &[lo, hi] : top) split(lo, hi, keys, tmp, below);
+        if (below.empty()) break;
+        top.swap(below);
     }
+    parallel_for(0, int64_t(top.size()), nthreads, 1, [&](int64_t r, int) {
+        std::vector<std::pair<int64_t, int64_t>> stack{top[size_t(r)]}, halves;
+        std::vector<uint64_t> k;
+        std::vector<Item> t;
+        while (!stack.empty()) {
+            const auto [lo, hi] = stack.back();
+            stack.pop_back();
+            halves.clear();
+            split(lo, hi, k, t, halves);
+            for (const auto &h : halves) stack.push_back(h);
+        }
+    });
     std::vector<int64_t> order(static_cast<size_t>(n));
     for (int64_t i = 0; i < n; ++i) order[size_t(i)] = it[size_t(i)].row;
     return order;
@@ -438,13 +461,11 @@ Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t 
     const bool prune = S.ntiles >= kPruneFrom && na >= 4 * kRowsF && !env_is("FASTMAC_FM_PRUNE", "off");
     std::vector<int64_t> border, aorder;
     nthreads = resolve_threads(nthreads, std::max<int64_t>(na, nb));
-    if (prune) {  // the two trees at once
+    if (prune) {  // the two trees, each on every thread
         std::vector<double> mean, axes;
         principal_axes(b, nb, dim, mean, axes);
-        parallel_for(0, 2, nthreads, 1, [&](int64_t which, int) {
-            if (which == 0) border = tree_order(b, nb, dim, kTile, mean, axes);
-            else aorder = tree_order(a, na, dim, kRowsF, mean, axes);
-        });
+        border = tree_order(b, nb, dim, kTile, mean, axes, nthreads);
+        aorder = tree_order(a, na, dim, kRowsF, mean, axes, nthreads);
     }
     S.col.assign(size_t(S.ntiles * kTile), -1);
     S.bt.assign(size_t(S.ntiles * dim * kTile), 0.0f);

@@ -407,7 +407,7 @@ std::vector<double> voxel_downsample(const double *points, int64_t n, double vox
         order.push_back({grid::scramble(pack(int64_t(x), int64_t(y), int64_t(z))), int64_t(order.size())});
         s = e;
     }
-    std::sort(order.begin(), order.end());
+    sort_keyed(order);  // the scrambled keys are distinct: the same order as std::sort, by radix
     std::vector<double> out(centre.size());
     for (size_t k = 0; k < order.size(); ++k)
         std::copy_n(&centre[3 * order[k].second], 3, &out[3 * k]);

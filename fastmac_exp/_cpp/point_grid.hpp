@@ -45,12 +45,19 @@ inline void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
     }
     uint64_t all = 0;
     for (const auto &e : v) all |= e.first;
+    if (all == 0) return;
+    // digits of up to 11 bits (2,048 counters stay in L1), as few passes as the key's used bits need:
+    // a 26-bit voxel key takes 3 passes instead of 4 bytes
+    const int bits = 64 - __builtin_clzll(all);
+    const int passes = (bits + 10) / 11, digit = (bits + passes - 1) / passes;
+    const uint64_t mask = (uint64_t(1) << digit) - 1;
     std::vector<std::pair<uint64_t, int64_t>> tmp(v.size());
-    for (int shift = 0; shift < 64 && (all >> shift); shift += 8) {
-        int64_t count[257] = {0};
-        for (const auto &e : v) ++count[((e.first >> shift) & 0xff) + 1];
-        for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
-        for (const auto &e : v) tmp[count[(e.first >> shift) & 0xff]++] = e;
+    std::vector<int64_t> count(size_t(mask) + 2);
+    for (int shift = 0; shift < bits; shift += digit) {
+        std::fill(count.begin(), count.end(), 0);
+        for (const auto &e : v) ++count[((e.first >> shift) & mask) + 1];
+        for (uint64_t b = 0; b <= mask; ++b) count[b + 1] += count[b];
+        for (const auto &e : v) tmp[size_t(count[(e.first >> shift) & mask]++)] = e;
         v.swap(tmp);
     }
 }
