@@ -10,8 +10,11 @@ Library use (no Hydra needed):
 """
 
 from fastmac_exp._libusb import preload_libusb
+from fastmac_exp.interrupts import interrupts_blocked
 
 preload_libusb()  # before anything: a caller's own `import open3d` then works on a bare machine too
+with interrupts_blocked():  # numpy's OpenBLAS starts its threads as it loads: none of them takes a Ctrl-C
+    import numpy  # noqa: F401
 # ruff: noqa: E402
 
 from fastmac_exp.api import register

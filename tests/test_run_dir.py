@@ -267,6 +267,42 @@ def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_it
 
 
 @pytest.mark.signals
+def test_only_the_main_thread_of_a_run_takes_ctrl_c_or_sigterm(tmp_path):
+    """A SIGTERM that a helper thread took (an OpenBLAS worker yielding after a product, tqdm's monitor
+    waking) left the main thread asleep in its read of the next pair: the run never stopped (once in CI).
+    While the run waits, every thread but the main one blocks SIGINT and SIGTERM; then one SIGTERM ends it."""
+    run_dir = tmp_path / "run"
+    pairs = _second_pair_blocks(tmp_path)
+    cmd = [sys.executable, "run.py", f"hydra.run.dir={run_dir}", *pairs, "seed=3", "tracker=none"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    reader = None
+    try:
+        reader = _blocked_after_first_row(proc, run_dir, tmp_path / "blocks.npy")
+        masks = {}
+        for task in Path(f"/proc/{proc.pid}/task").iterdir():
+            lines = (task / "status").read_text().splitlines()
+            status = dict(ln.split(":\t", 1) for ln in lines if ":\t" in ln)
+            masks[int(task.name)] = (status["Name"], int(status["SigBlk"], 16))
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=HANG_S)[0]
+    finally:
+        if reader is not None:
+            reader.close()
+        if proc.poll() is None:
+            proc.kill()
+    bits = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+    assert masks[proc.pid][1] & bits == 0, "the main thread must take them"
+    helpers = {tid: name for tid, (name, blocked) in masks.items() if tid != proc.pid}
+    assert helpers, "the run has helper threads (the core's pool, OpenBLAS)"
+    open_to_it = {
+        tid: helpers[tid] for tid, (_, blocked) in masks.items() if tid in helpers and blocked & bits != bits
+    }
+    assert not open_to_it, f"threads that could take the run's SIGTERM: {open_to_it}"
+    assert proc.returncode == 130, out[-2000:]
+
+
+@pytest.mark.signals
 def test_ending_workers_survives_a_result_cut_off_mid_message(tmp_path):
     """A worker SIGTERMed while sending its result leaves part of a message in the result pipe: ending the
     workers must not wait forever for the rest (it did, under load, about one interrupt in 40)."""

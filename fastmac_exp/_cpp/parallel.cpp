@@ -5,6 +5,8 @@
 #include <thread>
 #include <vector>
 
+#include <pthread.h>
+#include <signal.h>
 #include <unistd.h>
 
 namespace fastmac {
@@ -63,6 +65,13 @@ class Pool {
 
    private:
     void worker(uint64_t seen) {
+        // A process-directed Ctrl-C or SIGTERM is for Python's main thread: a worker that took it would
+        // leave the main thread asleep in whatever it waits on (a read, a lock) with the signal gone.
+        sigset_t interrupts;
+        sigemptyset(&interrupts);
+        for (int sig : {SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGALRM, SIGUSR1, SIGUSR2, SIGCHLD, SIGWINCH})
+            sigaddset(&interrupts, sig);
+        pthread_sigmask(SIG_BLOCK, &interrupts, nullptr);
         std::unique_lock<std::mutex> lock(mu_);
         for (;;) {
             work_cv_.wait(lock, [&] { return generation_ != seen; });

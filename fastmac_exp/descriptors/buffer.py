@@ -66,6 +66,7 @@ from fastmac_exp.descriptors.patches import MIN_POINTS, CylinderGrid, keypoints,
 from fastmac_exp.descriptors.progress import keypoint_bar
 from fastmac_exp.errors import InputError
 from fastmac_exp.families import FAMILIES
+from fastmac_exp.interrupts import block_interrupts, interrupts_blocked
 from fastmac_exp.types import Correspondences, Pair
 
 log = logging.getLogger(__name__)
@@ -407,7 +408,8 @@ def _session(path: Path, threads: int, providers="auto"):
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return open_session(path, opts, providers, f"BUFFER model {path.name}")
+        with interrupts_blocked():  # onnxruntime's threads start with the session
+            return open_session(path, opts, providers, f"BUFFER model {path.name}")
     except Exception as exc:  # noqa: BLE001 - onnxruntime raises several types for a bad file
         raise InputError(f"BUFFER model {path} could not be loaded: {exc}") from exc
 
@@ -878,7 +880,7 @@ class BufferDescriptor(FeatureDescriptor):
         bar = keypoint_bar(m, f"{self.title} {what}", self.progress, bs)
         t_prep = t_run = 0.0
         # numpy prepares the next batch while onnxruntime runs this one (both release the GIL)
-        with ThreadPoolExecutor(max_workers=1) as pool:
+        with ThreadPoolExecutor(max_workers=1, initializer=block_interrupts) as pool:
             pending = pool.submit(prepare, starts[0]) if starts else None
             for n_i, s in enumerate(starts):
                 ta = time.perf_counter()

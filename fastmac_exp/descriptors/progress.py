@@ -12,5 +12,7 @@ def keypoint_bar(total: int, label: str, enabled: bool, batch_size: int) -> Any:
     batch."""
     from tqdm import tqdm
 
+    tqdm.monitor_interval = 0  # no monitor thread: a timer thread could take the run's Ctrl-C (interrupts.py)
+
     show = enabled and total >= 4 * batch_size
     return tqdm(total=total, desc=label, unit="kp", leave=False, disable=None if show else True)

@@ -18,6 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp.errors import InputError, own_error
+from fastmac_exp.interrupts import interrupts_blocked
 from fastmac_exp.resources import config_dir
 from fastmac_exp.run.resume import is_auto, latest_run
 from fastmac_exp.run.runlock import RunLocked
@@ -352,6 +353,8 @@ def run() -> None:
         log.error(hint)
         sys.exit(2)
     signal.signal(signal.SIGTERM, _interrupt)  # a SIGTERM ends a run as Ctrl-C does
+    with interrupts_blocked():  # scipy's OpenBLAS starts its threads as it loads (fastmac_exp.interrupts)
+        import scipy.special  # noqa: F401  (every registration's trust check uses it)
     try:
         main()
     except KeyboardInterrupt:  # inside Hydra's own start-up, before main's handler

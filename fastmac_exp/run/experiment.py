@@ -232,6 +232,8 @@ def _work(args: tuple[int, str]) -> PairOutcome:
 def _progress(total: int, enabled: bool):
     from tqdm import tqdm
 
+    tqdm.monitor_interval = 0  # no monitor thread: a timer thread could take the run's Ctrl-C (interrupts.py)
+
     # disable=None: no bar where stderr is not a terminal (a log would get a carriage-return line a pair)
     return tqdm(total=total, disable=None if enabled else True, unit="pair", dynamic_ncols=True)
 
