@@ -153,6 +153,20 @@ def test_int8_descriptors_agree_with_float32_on_a_small_synthetic_cloud():
     assert np.abs(a - b).max() > 1e-4  # another model, not the float one under a new name
 
 
+def test_two_onnxruntime_threads_describe_what_one_does():
+    """`threads: 0` (one a core) is the config's default: the descriptors must not depend on it (a cache or a
+    study would otherwise depend on the machine). Both models, both precisions, bit for bit."""
+    room = toy_room(1) - np.array([1.0, 1.0, 1.2])
+    kp = voxel_down(room, 0.2)[:12]
+    for precision in ("int8", "float32"):
+        for family in ("3dmatch", "kitti"):
+            out = []
+            for threads in (1, 2):
+                d = SpinNetDescriptor(threads=threads, progress=False, precision=precision, cache_clouds=0)
+                out.append(d.describe(d.load(family), room, kp, 1.0))
+            np.testing.assert_array_equal(out[0], out[1], err_msg=f"{precision} {family}")
+
+
 HELD_OUT_KEYPOINTS = 48  # a cloud
 # bounds on the held-out pair (test below). Measured (cosine mean / min / same nearest): 3DMatch
 # 0.99991 / 0.99971 / 1.0, KITTI 0.99964 / 0.99836 / 0.9375; the models before (all in uint8) 0.99938 /
