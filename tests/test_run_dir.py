@@ -228,19 +228,19 @@ def test_resume_keeps_the_earlier_recording_and_wandb_run_and_the_report_reads_e
     assert pngs == ["3dmatch_000.png", "3dmatch_001.png"]
 
 
-@pytest.mark.signals
-def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_its_own(tmp_path):
-    """Issue 42 item 6: the hint carries the run's overrides (a bare resume=DIR is refused as another
-    experiment), stands on its own line even with the progress bar on, and counts in the right number."""
+def _sigterm_while_blocked(tmp_path: Path, look=None) -> tuple[subprocess.Popen, str, list[str], dict]:
+    """Runs two pairs whose second blocks (_second_pair_blocks), calls `look(proc)` once the run waits on
+    it, sends one SIGTERM and returns (the ended process, its output, the pair overrides, the env)."""
     run_dir = tmp_path / "run"
     pairs = _second_pair_blocks(tmp_path)
     cmd = [sys.executable, "run.py", f"hydra.run.dir={run_dir}", *pairs, "seed=3", "tracker=none"]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    log = run_dir / "results.jsonl"
     reader = None
     try:
         reader = _blocked_after_first_row(proc, run_dir, tmp_path / "blocks.npy")
+        if look is not None:
+            look(proc)
         proc.send_signal(signal.SIGTERM)
         out = proc.communicate(timeout=HANG_S)[0]
     finally:
@@ -248,6 +248,16 @@ def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_it
             reader.close()
         if proc.poll() is None:
             proc.kill()
+    return proc, out, pairs, env
+
+
+@pytest.mark.signals
+def test_an_interrupted_run_prints_the_command_that_continues_it_on_a_line_of_its_own(tmp_path):
+    """Issue 42 item 6: the hint carries the run's overrides (a bare resume=DIR is refused as another
+    experiment), stands on its own line even with the progress bar on, and counts in the right number."""
+    run_dir = tmp_path / "run"
+    log = run_dir / "results.jsonl"
+    proc, out, pairs, env = _sigterm_while_blocked(tmp_path)
     assert proc.returncode == 130, out[-2000:]
     lines = out.split("\n")
     (said,) = [ln for ln in lines if "interrupted: " in ln]
@@ -271,26 +281,15 @@ def test_only_the_main_thread_of_a_run_takes_ctrl_c_or_sigterm(tmp_path):
     """A SIGTERM that a helper thread took (an OpenBLAS worker yielding after a product, tqdm's monitor
     waking) left the main thread asleep in its read of the next pair: the run never stopped (once in CI).
     While the run waits, every thread but the main one blocks SIGINT and SIGTERM; then one SIGTERM ends it."""
-    run_dir = tmp_path / "run"
-    pairs = _second_pair_blocks(tmp_path)
-    cmd = [sys.executable, "run.py", f"hydra.run.dir={run_dir}", *pairs, "seed=3", "tracker=none"]
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    reader = None
-    try:
-        reader = _blocked_after_first_row(proc, run_dir, tmp_path / "blocks.npy")
-        masks = {}
+    masks = {}
+
+    def read_masks(proc: subprocess.Popen) -> None:
         for task in Path(f"/proc/{proc.pid}/task").iterdir():
             lines = (task / "status").read_text().splitlines()
             status = dict(ln.split(":\t", 1) for ln in lines if ":\t" in ln)
             masks[int(task.name)] = (status["Name"], int(status["SigBlk"], 16))
-        proc.send_signal(signal.SIGTERM)
-        out = proc.communicate(timeout=HANG_S)[0]
-    finally:
-        if reader is not None:
-            reader.close()
-        if proc.poll() is None:
-            proc.kill()
+
+    proc, out, _, _ = _sigterm_while_blocked(tmp_path, read_masks)
     bits = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
     assert masks[proc.pid][1] & bits == 0, "the main thread must take them"
     helpers = {tid: name for tid, (name, blocked) in masks.items() if tid != proc.pid}
