@@ -142,8 +142,12 @@ def test_voxel_keypoints_in_scrambled_voxel_order_and_deterministic():
     assert np.all(np.ptp(head, axis=0) > 0.8 * np.ptp(a, axis=0))
 
 
+@pytest.mark.parametrize("loops", ["auto", "generic"])
 @pytest.mark.parametrize("max_nn", [5, 30, 1000])
-def test_radius_neighbours_are_the_nearest_within_the_radius(max_nn):
+def test_radius_neighbours_are_the_nearest_within_the_radius(monkeypatch, max_nn, loops):
+    """Each query's max_nn nearest by (squared distance, index), by the AVX-512 loop and the portable one
+    (~36 hits a query: the cap cuts the slices at 5 and 30, and every hit is kept at 1000)."""
+    monkeypatch.setenv("FASTMAC_FPFH_LOOPS", loops)
     pts = core.core().voxel_downsample(scan(3), 0.05)
     r = 0.17
     nb = core.core().radius_neighbours(pts, r, max_nn)
@@ -194,6 +198,26 @@ def test_fpfh_of_chosen_rows_equals_those_rows_of_all():
     np.testing.assert_array_equal(some, every[rows])
     _, one_thread = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3), num_threads=1)
     np.testing.assert_array_equal(one_thread, every)
+
+
+@pytest.mark.parametrize("case", ["scan", "kitti", "tiny", "huge"])
+def test_fpfh_is_the_same_by_the_avx512_and_the_portable_loops(monkeypatch, case):
+    """Bit for bit, normals and features: the AVX-512 radius search and weighted sum (no division per term;
+    two FMA corrections) against the portable loops. "tiny" and "huge" put the squared distances below
+    1e-200 and above 1e200, where the weighted sum divides."""
+    if case == "kitti":
+        pts, voxel = kitti_cloud()
+    else:
+        scale = {"scan": 1.0, "tiny": 1e-105, "huge": 1e105}[case]
+        pts, voxel = scan(13, 8000) * scale, 0.05 * scale
+    kp = core.core().voxel_downsample(pts, voxel)
+    out = {}
+    for loops in ("auto", "generic"):
+        monkeypatch.setenv("FASTMAC_FPFH_LOOPS", loops)
+        out[loops] = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3))
+    np.testing.assert_array_equal(out["auto"][0], out["generic"][0])
+    np.testing.assert_array_equal(out["auto"][1], out["generic"][1])
+    assert np.count_nonzero(out["auto"][1]) > 0.2 * out["auto"][1].size
 
 
 def test_fpfh_hand_case_two_points():

@@ -17,6 +17,10 @@
 #include <string>
 #include <utility>
 
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
 #include "mac_core.hpp"
 #include "parallel.hpp"
 #include "point_grid.hpp"
@@ -47,39 +51,50 @@ inline double hit_d2(Hit h) {
 }
 inline int32_t hit_idx(Hit h) { return int32_t(uint32_t(h)); }
 
-// The `cap` nearest of a query's hits (squared distances in [0, r2)), nearest first, into the front of
-// `hits` (resized to them): a counting sort into 128 slices of [0, r2), the slices past the cap-th hit
-// dropped, then an insertion sort, which has little left to do (a few hits a slice).
-void nearest_hits(Hits &hits, int64_t cap, double r2, std::vector<int32_t> &bucket, Hits &spare) {
-    constexpr int kSlices = 128;
-    const int64_t n = int64_t(hits.size());
-    if (n < 24) {
-        std::sort(hits.begin(), hits.end());
-        if (n > cap) hits.resize(cap);
-        return;
+// A query's hits go into 128 slices of [0, r2) by squared distance (a counting sort; ~n / 128 a slice on a
+// surface, where the hits are uniform in d^2)
+constexpr int kSlices = 128;
+
+// The `cap` nearest of a query's nh hits (squared distances dd in [0, r2), indices ii, slices sl), nearest
+// first by (squared distance, index), into d2o and io; returns how many. The slices past the cap-th hit are
+// dropped before an insertion sort, which has little left to do (a few hits a slice).
+int64_t nearest_hits(const double *dd, const int32_t *ii, const int32_t *sl, int64_t nh, int64_t cap,
+                     Hits &spare, double *d2o, int32_t *io) {
+    int64_t keep;
+    if (nh < 24) {
+        spare.resize(nh);
+        for (int64_t k = 0; k < nh; ++k) spare[k] = make_hit(dd[k], ii[k]);
+        std::sort(spare.begin(), spare.end());
+        keep = std::min(nh, cap);
+    } else {
+        int32_t bucket[kSlices + 1] = {};
+        for (int64_t k = 0; k < nh; ++k) ++bucket[sl[k] + 1];
+        for (int b = 0; b < kSlices; ++b) bucket[b + 1] += bucket[b];
+        // the hits of the slices up to the one holding the cap-th nearest (all of them when nh <= cap)
+        int last = kSlices - 1;
+        if (nh > cap) {
+            last = 0;
+            while (last < kSlices - 1 && bucket[last + 1] < cap) ++last;
+        }
+        const int64_t m = bucket[last + 1];
+        spare.resize(m);
+        for (int64_t k = 0; k < nh; ++k) {
+            const int b = sl[k];
+            if (b <= last) spare[bucket[b]++] = make_hit(dd[k], ii[k]);
+        }
+        for (int64_t k = 1; k < m; ++k) {
+            const Hit h = spare[k];
+            int64_t j = k;
+            while (j > 0 && spare[j - 1] > h) spare[j] = spare[j - 1], --j;
+            spare[j] = h;
+        }
+        keep = std::min(m, cap);
     }
-    bucket.assign(kSlices + 1, 0);
-    const double scale = kSlices / r2;
-    auto slice = [&](Hit h) { return std::min(kSlices - 1, int(hit_d2(h) * scale)); };
-    for (const Hit h : hits) ++bucket[slice(h) + 1];
-    for (int b = 0; b < kSlices; ++b) bucket[b + 1] += bucket[b];
-    // the hits of the slices up to the one holding the cap-th nearest
-    int last = 0;
-    while (last < kSlices - 1 && bucket[last + 1] < cap) ++last;
-    const int64_t m = bucket[last + 1];
-    spare.resize(n);
-    for (const Hit h : hits) {
-        const int b = slice(h);
-        if (b <= last) spare[bucket[b]++] = h;
+    for (int64_t k = 0; k < keep; ++k) {
+        d2o[k] = hit_d2(spare[k]);
+        io[k] = hit_idx(spare[k]);
     }
-    for (int64_t k = 1; k < m; ++k) {
-        const Hit h = spare[k];
-        int64_t j = k;
-        while (j > 0 && spare[j - 1] > h) spare[j] = spare[j - 1], --j;
-        spare[j] = h;
-    }
-    spare.resize(std::min(m, cap));
-    hits.swap(spare);
+    return keep;
 }
 
 // --- the closed-form eigenvector of the smallest eigenvalue (Open3D's FastEigen3x3) ---------------------
@@ -354,6 +369,110 @@ void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double 
     for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
 }
 
+#if defined(__GNUC__) && defined(__x86_64__)
+// weighted_sum by AVX-512 without a division per term. Each quotient s / d starts as q = RN(s y), y = RN(1 / d)
+// (within 1.5 ulp), and takes two FMA corrections q <- RN(q + RN(s - d q) y): the first leaves it within an ulp
+// (faithful), the second rounds it correctly, by Markstein's theorem (y within 2^-53 of 1 / d relatively, q
+// faithful, nothing under- or overflowing: Markstein, IBM J. Res. Dev. 34(1), 1990). SPFH values are 0 or in
+// [100 / max_nn, 100], so that holds for squared distances in [1e-200, 1e200]; others divide. The same
+// quotients as the division, added in the same order: the same bits.
+__attribute__((target("avx512f"))) void weighted_sum_avx512(const int32_t *nbr, const double *d2, int64_t m,
+                                                            const double *spfh, double *f, double sum[3]) {
+    constexpr __mmask8 last = 1;  // f[32]
+    __m512d acc[5];
+    for (int c = 0; c < 4; ++c) acc[c] = _mm512_loadu_pd(f + 8 * c);
+    acc[4] = _mm512_maskz_loadu_pd(last, f + 32);
+    for (int64_t k = 0; k < m; ++k) {
+        const double dist = d2[k];
+        if (dist == 0.0) continue;
+        const double *s = &spfh[size_t(nbr[k]) * 33];
+        const __m512d b = _mm512_set1_pd(dist);
+        if (dist >= 1e-200 && dist <= 1e200) {
+            const __m512d y = _mm512_set1_pd(1.0 / dist);
+            for (int c = 0; c < 5; ++c) {
+                const __m512d v = c < 4 ? _mm512_loadu_pd(s + 8 * c) : _mm512_maskz_loadu_pd(last, s + 32);
+                __m512d q = _mm512_mul_pd(v, y);
+                q = _mm512_fmadd_pd(_mm512_fnmadd_pd(q, b, v), y, q);
+                acc[c] = _mm512_add_pd(acc[c], _mm512_fmadd_pd(_mm512_fnmadd_pd(q, b, v), y, q));
+            }
+        } else {
+            for (int c = 0; c < 5; ++c) {
+                const __m512d v = c < 4 ? _mm512_loadu_pd(s + 8 * c) : _mm512_maskz_loadu_pd(last, s + 32);
+                acc[c] = _mm512_add_pd(acc[c], _mm512_div_pd(v, b));
+            }
+        }
+    }
+    for (int c = 0; c < 4; ++c) _mm512_storeu_pd(f + 8 * c, acc[c]);
+    _mm512_mask_storeu_pd(f + 32, last, acc[4]);
+    for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
+}
+#else
+void weighted_sum_avx512(const int32_t *, const double *, int64_t, const double *, double *, double *) {}
+#endif
+
+// The candidates within r2 of (x, y, z): their squared distances ((dx^2 + dy^2) + dz^2, Open3D's order;
+// -ffp-contract=off keeps FMA out) into dd, their indices into ii and their slices (nearest_hits) into sl,
+// in candidate order; returns how many.
+int64_t hits_within(double x, double y, double z, const double *__restrict qx, const double *__restrict qy,
+                    const double *__restrict qz, const int32_t *__restrict qi, int64_t m, double r2,
+                    double *__restrict dd, int32_t *__restrict ii, int32_t *__restrict sl) {
+    const double scale = kSlices / r2;
+    int64_t nh = 0;
+    for (int64_t t = 0; t < m; ++t) {  // branch-free compaction
+        const double ex = x - qx[t], ey = y - qy[t], ez = z - qz[t];
+        const double d = ex * ex + ey * ey + ez * ez;
+        dd[nh] = d;
+        ii[nh] = qi[t];
+        sl[nh] = std::min(kSlices - 1, int(d * scale));
+        nh += d < r2;
+    }
+    return nh;
+}
+
+#if defined(__GNUC__) && defined(__x86_64__)
+// hits_within by eight lanes of AVX-512: the same products and sums, the lanes within r2 compressed in a
+// register and stored whole (dd needs 8 and ii 16 slots past the count; a compressing store to memory is
+// microcoded on some cores).
+__attribute__((target("avx512f"))) int64_t hits_within_avx512(double x, double y, double z, const double *qx,
+                                                              const double *qy, const double *qz,
+                                                              const int32_t *qi, int64_t m, double r2, double *dd,
+                                                              int32_t *ii, int32_t *sl) {
+    const __m512d px = _mm512_set1_pd(x), py = _mm512_set1_pd(y), pz = _mm512_set1_pd(z);
+    const __m512d lim = _mm512_set1_pd(r2), scale = _mm512_set1_pd(kSlices / r2);
+    const __m256i top = _mm256_set1_epi32(kSlices - 1);
+    int64_t nh = 0;
+    for (int64_t t = 0; t < m; t += 8) {
+        const __mmask8 lanes = m - t >= 8 ? __mmask8(0xff) : __mmask8((1u << (m - t)) - 1u);
+        const __m512d ex = _mm512_sub_pd(px, _mm512_maskz_loadu_pd(lanes, qx + t));
+        const __m512d ey = _mm512_sub_pd(py, _mm512_maskz_loadu_pd(lanes, qy + t));
+        const __m512d ez = _mm512_sub_pd(pz, _mm512_maskz_loadu_pd(lanes, qz + t));
+        const __m512d d2 =
+            _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ex, ex), _mm512_mul_pd(ey, ey)), _mm512_mul_pd(ez, ez));
+        const __mmask8 in = _mm512_mask_cmp_pd_mask(lanes, d2, lim, _CMP_LT_OQ);
+        const __m512i idx = _mm512_maskz_loadu_epi32(__mmask16(lanes), qi + t);
+        _mm512_storeu_pd(dd + nh, _mm512_maskz_compress_pd(in, d2));
+        _mm512_storeu_si512(ii + nh, _mm512_maskz_compress_epi32(__mmask16(in), idx));
+        const __m256i b = _mm256_min_epi32(_mm512_cvttpd_epi32(_mm512_mul_pd(d2, scale)), top);
+        _mm512_storeu_si512(sl + nh, _mm512_maskz_compress_epi32(__mmask16(in), _mm512_castsi256_si512(b)));
+        nh += __builtin_popcount(unsigned(in));
+    }
+    return nh;
+}
+
+// FASTMAC_FPFH_LOOPS=generic: the portable loops of the radius search and the weighted sum (read each call,
+// for tests and benchmarks)
+bool fpfh_avx512() {
+    static const bool cpu = __builtin_cpu_supports("avx512f");
+    return cpu && !env_is("FASTMAC_FPFH_LOOPS", "generic");
+}
+#else
+bool fpfh_avx512() { return false; }
+int64_t hits_within_avx512(double, double, double, const double *, const double *, const double *,
+                           const int32_t *, int64_t, double, double *, int32_t *, int32_t *) {
+    return 0;
+}
+#endif
+
 }  // namespace
 
 std::vector<double> voxel_downsample(const double *points, int64_t n, double voxel, int nthreads) {
@@ -439,17 +558,19 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         keyed[i] = {pack(cx[3 * i], cx[3 * i + 1], cx[3 * i + 2]), i};
     }
     sort_keyed(keyed);
+    // the points in cell order, by axis (a run of cells is then one contiguous copy of each axis)
     std::vector<uint64_t> cell_key;
     std::vector<int64_t> cell_start;
-    std::vector<double> sorted(3 * n);
+    std::vector<double> sx(n), sy(n), sz(n);
     std::vector<int32_t> order(n);
     for (int64_t k = 0; k < n; ++k) {
         if (k == 0 || keyed[k].first != keyed[k - 1].first) {
             cell_key.push_back(keyed[k].first);
             cell_start.push_back(k);
         }
-        order[k] = int32_t(keyed[k].second);
-        for (int d = 0; d < 3; ++d) sorted[3 * k + d] = points[3 * keyed[k].second + d];
+        const int64_t i = keyed[k].second;
+        order[k] = int32_t(i);
+        sx[k] = points[3 * i], sy[k] = points[3 * i + 1], sz[k] = points[3 * i + 2];
     }
     const int64_t ncell = int64_t(cell_key.size());
     cell_start.push_back(n);
@@ -460,61 +581,61 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
     out.end.resize(n);
     for (int64_t i = 0; i <= n; ++i) out.ptr[i] = i * cap;
     nthreads = resolve_threads(nthreads, n);
+    const bool use512 = fpfh_avx512();
+    constexpr int kRuns = (2 * reach + 1) * (2 * reach + 1);
     DynamicRange range(0, ncell, 16);
     parallel_region(nthreads, [&](int) {
-        // the 27 cells' points, gathered per cell of queries (coordinates by axis, so that the distance
-        // loop vectorises), then each query's hits sorted nearest first
-        std::vector<double> qx, qy, qz, dd;
-        std::vector<int32_t> qi;
-        Hits hits, spare;
-        std::vector<int32_t> bucket, within;
+        // the 25 runs of cells' points, gathered per cell of queries (coordinates by axis, so that the
+        // distance loop vectorises), then each query's hits sorted nearest first
+        std::vector<double, NoInit<double>> qx, qy, qz, dd;
+        std::vector<int32_t, NoInit<int32_t>> qi, ii, sl;
+        Hits spare;
         int64_t c0, c1;
+        int64_t at[kRuns];  // each run's first cell: non-decreasing over a chunk's cells (cell keys increase)
+        int64_t s0[kRuns], len[kRuns];
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
                 const int64_t first = cell_start[c];
                 const int64_t *g = &cx[3 * order[first]];
-                qx.clear(), qy.clear(), qz.clear(), qi.clear();
+                int64_t nc = 0;
+                int run = 0;
                 for (int64_t dx = -reach; dx <= reach; ++dx)
-                    for (int64_t dy = -reach; dy <= reach; ++dy) {
+                    for (int64_t dy = -reach; dy <= reach; ++dy, ++run) {
                         // the cells (dx, dy, -reach..reach) are consecutive keys: one search for the run
                         const uint64_t k0 = pack(g[0] + dx, g[1] + dy, g[2] - reach);
                         const uint64_t k1 = pack(g[0] + dx, g[1] + dy, g[2] + reach);
-                        auto it = std::lower_bound(cell_key.begin(), cell_key.end(), k0);
-                        if (it == cell_key.end() || *it > k1) continue;
-                        const int64_t s0 = cell_start[it - cell_key.begin()];
-                        auto last = std::upper_bound(it, std::min(it + (2 * reach + 1), cell_key.end()), k1);
-                        const int64_t s1 = cell_start[last - cell_key.begin()];
-                        for (int64_t t = s0; t < s1; ++t) {
-                            qx.push_back(sorted[3 * t]);
-                            qy.push_back(sorted[3 * t + 1]);
-                            qz.push_back(sorted[3 * t + 2]);
-                            qi.push_back(order[t]);
-                        }
+                        int64_t a = c == c0 ? 0 : at[run];
+                        // a short walk on from the previous cell's position, else a binary search past it
+                        for (int steps = 0; a < ncell && cell_key[a] < k0 && steps < 8; ++steps) ++a;
+                        if (a < ncell && cell_key[a] < k0)
+                            a = std::lower_bound(cell_key.begin() + a, cell_key.end(), k0) - cell_key.begin();
+                        at[run] = a;
+                        len[run] = 0;
+                        if (a == ncell || cell_key[a] > k1) continue;
+                        int64_t b = a + 1;
+                        while (b < ncell && b < a + (2 * reach + 1) && cell_key[b] <= k1) ++b;
+                        s0[run] = cell_start[a];
+                        len[run] = cell_start[b] - cell_start[a];
+                        nc += len[run];
                     }
-                const int64_t nc = int64_t(qx.size());
-                dd.resize(nc);
+                qx.resize(nc), qy.resize(nc), qz.resize(nc), qi.resize(nc);
+                for (int64_t r = 0, o = 0; r < kRuns; o += len[r], ++r) {
+                    std::copy_n(&sx[s0[r]], len[r], &qx[o]);
+                    std::copy_n(&sy[s0[r]], len[r], &qy[o]);
+                    std::copy_n(&sz[s0[r]], len[r], &qz[o]);
+                    std::copy_n(&order[s0[r]], len[r], &qi[o]);
+                }
+                dd.resize(nc + 8), ii.resize(nc + 16), sl.resize(nc + 16);
                 for (int64_t s = first; s < cell_start[c + 1]; ++s) {
-                    const double px = sorted[3 * s], py = sorted[3 * s + 1], pz = sorted[3 * s + 2];
-                    for (int64_t t = 0; t < nc; ++t) {
-                        const double ex = px - qx[t], ey = py - qy[t], ez = pz - qz[t];
-                        dd[t] = ex * ex + ey * ey + ez * ez;
-                    }
-                    within.resize(nc);
-                    int64_t nh = 0;
-                    for (int64_t t = 0; t < nc; ++t) {  // branch-free compaction of the positions
-                        within[nh] = int32_t(t);
-                        nh += dd[t] < r2;
-                    }
-                    hits.resize(nh);
-                    for (int64_t k = 0; k < nh; ++k) hits[k] = make_hit(dd[within[k]], qi[within[k]]);
-                    nearest_hits(hits, cap, r2, bucket, spare);
-                    const int64_t keep = int64_t(hits.size());
+                    const int64_t nh =
+                        use512 ? hits_within_avx512(sx[s], sy[s], sz[s], qx.data(), qy.data(), qz.data(), qi.data(),
+                                                    nc, r2, dd.data(), ii.data(), sl.data())
+                               : hits_within(sx[s], sy[s], sz[s], qx.data(), qy.data(), qz.data(), qi.data(), nc, r2,
+                                             dd.data(), ii.data(), sl.data());
                     const int64_t i = order[s];
+                    const int64_t keep = nearest_hits(dd.data(), ii.data(), sl.data(), nh, cap, spare,
+                                                      &out.d2[size_t(i) * cap], &out.idx[size_t(i) * cap]);
                     out.end[i] = i * cap + keep;
-                    for (int64_t k = 0; k < keep; ++k) {
-                        out.d2[size_t(i) * cap + k] = hit_d2(hits[k]);
-                        out.idx[size_t(i) * cap + k] = hit_idx(hits[k]);
-                    }
                 }
             }
         }
@@ -607,13 +728,14 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
             }
     });
     std::vector<double> out(size_t(nrows) * 33, 0.0);
+    const bool use512 = fpfh_avx512();
     parallel_for(0, nrows, nthreads, 256, [&](int64_t r, int) {
         const int64_t i = rows ? rows[r] : r;
         const int64_t b = nb.ptr[i], e = nb.end[i];
         if (e - b <= 1) return;
         double *f = &out[size_t(r) * 33];
         double sum[3] = {0.0, 0.0, 0.0};
-        weighted_sum(&nb.idx[b + 1], &nb.d2[b + 1], e - b - 1, spfh.data(), f, sum);
+        (use512 ? weighted_sum_avx512 : weighted_sum)(&nb.idx[b + 1], &nb.d2[b + 1], e - b - 1, spfh.data(), f, sum);
         for (double &s : sum)
             if (s != 0.0) s = 100.0 / s;
         const double *own = &spfh[size_t(i) * 33];
