@@ -221,11 +221,10 @@ inline int bin_of(double t) {  // t already scaled to [0, 11)
     return h < 0 ? 0 : (h >= 11 ? 10 : h);
 }
 
-// Adds the three bins of the pair (p1, n1) -> (p2, n2) to h with weight incr (Open3D's
+// The three bins of the pair (p1, n1) -> (p2, n2), 0-10, 11-21 and 22-32 (Open3D's
 // ComputePairFeatures and ComputeSPFHFeature, with its acos and atan2): the exact path for the pairs that
 // pair_features' fast one leaves undecided.
-inline void add_pair(const double *p1, const double *n1, const double *p2, const double *n2, double incr,
-                     double *h) {
+inline void pair_bins(const double *p1, const double *n1, const double *p2, const double *n2, int bins[3]) {
     const double f0 = 0, f2 = 0;
     double f1 = 0;
     V3 dp{p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2]};
@@ -247,15 +246,15 @@ inline void add_pair(const double *p1, const double *n1, const double *p2, const
             v = divide(v, vn);
             const V3 w = cross(a, v);
             f1 = dot(v, b);
-            h[bin_of(11 * (std::atan2(dot(w, b), dot(a, b)) + M_PI) / (2.0 * M_PI))] += incr;
-            h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
-            h[22 + bin_of(11 * (f2c + 1.0) * 0.5)] += incr;
+            bins[0] = bin_of(11 * (std::atan2(dot(w, b), dot(a, b)) + M_PI) / (2.0 * M_PI));
+            bins[1] = 11 + bin_of(11 * (f1 + 1.0) * 0.5);
+            bins[2] = 22 + bin_of(11 * (f2c + 1.0) * 0.5);
             return;
         }
     }
-    h[bin_of(11 * (f0 + M_PI) / (2.0 * M_PI))] += incr;
-    h[11 + bin_of(11 * (f1 + 1.0) * 0.5)] += incr;
-    h[22 + bin_of(11 * (f2 + 1.0) * 0.5)] += incr;
+    bins[0] = bin_of(11 * (f0 + M_PI) / (2.0 * M_PI));
+    bins[1] = 11 + bin_of(11 * (f1 + 1.0) * 0.5);
+    bins[2] = 22 + bin_of(11 * (f2 + 1.0) * 0.5);
 }
 
 
@@ -267,23 +266,27 @@ inline void add_pair(const double *p1, const double *n1, const double *p2, const
 
 // Per-thread buffers of spfh_of: the neighbours' points and normals by axis, and each pair's results.
 struct PairScratch {
-    std::vector<double> px, py, pz, nx, ny, nz, t0, f1, f2, ok;
+    std::vector<double> px, py, pz, nx, ny, nz, ok;
+    std::vector<int32_t> b0, b1, b2;
+    std::vector<double> sums;  // the running sums of 100 / m
     void resize(int64_t m) {
-        for (auto *v : {&px, &py, &pz, &nx, &ny, &nz, &t0, &f1, &f2, &ok}) v->resize(m);
+        for (auto *v : {&px, &py, &pz, &nx, &ny, &nz, &ok}) v->resize(m);
+        for (auto *v : {&b0, &b1, &b2}) v->resize(m);
     }
 };
 
-// The three pair features of point 1 with each of m neighbours (add_pair's arithmetic, branch-free so that
+// The three pair features of point 1 with each of m neighbours (pair_bins' arithmetic, branch-free so that
 // it vectorises; built for AVX-512 and AVX2 besides the baseline, each lane doing the same IEEE operations).
-// t0 is f0's bin from the polynomial atan; ok[k] = 0 marks the pairs whose bins this cannot settle
+// b0, b1, b2 are the bins (b0 from the polynomial atan; bin_of's floor and clamps, in a form that
+// vectorises); ok[k] = 0 marks the pairs whose bins this cannot settle
 // (coincident points, a swap decided by rounding, a degenerate frame, f0 within 1e-3 of a bin edge): those
-// go through add_pair.
+// go through pair_bins.
 FASTMAC_FPFH_CLONES
 void pair_features(int64_t m, const double *p1, const double *n1, PairScratch &w) {
     const double ux = n1[0], uy = n1[1], uz = n1[2], qx = p1[0], qy = p1[1], qz = p1[2];
     const double *__restrict px = w.px.data(), *__restrict py = w.py.data(), *__restrict pz = w.pz.data();
     const double *__restrict nx = w.nx.data(), *__restrict ny = w.ny.data(), *__restrict nz = w.nz.data();
-    double *__restrict t0 = w.t0.data(), *__restrict f1o = w.f1.data(), *__restrict f2o = w.f2.data();
+    int32_t *__restrict b0 = w.b0.data(), *__restrict b1 = w.b1.data(), *__restrict b2 = w.b2.data();
     double *__restrict ok = w.ok.data();
 #pragma GCC ivdep
     for (int64_t k = 0; k < m; ++k) {
@@ -324,14 +327,26 @@ void pair_features(int64_t m, const double *p1, const double *n1, PairScratch &w
         const double fl = rn > t ? rn1 : rn;
         // NaN (coincident points, a degenerate frame) fails every comparison, so it lands on the exact path
         const bool plain = (t - fl > 1e-3) & (fl + 1 - t > 1e-3) & (std::fabs(gap) > 1e-12) & (vn > 0);
-        t0[k] = fl;
-        f1o[k] = f1;
-        f2o[k] = f2;
+        // f1's and f2's bins: bin_of(11 * (f + 1) * 0.5), the floor as above; a plain pair's features are
+        // finite, the others' bins are not used (set to 0 before the conversion, which NaN would not survive)
+        const double t1 = 11 * (f1 + 1.0) * 0.5, t2 = 11 * (f2 + 1.0) * 0.5;
+        const double rn_1 = (t1 + 6755399441055744.0) - 6755399441055744.0, rn_2 = (t2 + 6755399441055744.0) - 6755399441055744.0;
+        const double rn_1m = rn_1 - 1.0, rn_2m = rn_2 - 1.0;
+        const double fl1 = rn_1 > t1 ? rn_1m : rn_1, fl2 = rn_2 > t2 ? rn_2m : rn_2;
+        const double c0 = fl < 0 ? 0.0 : (fl >= 11 ? 10.0 : fl);
+        const double c1 = fl1 < 0 ? 0.0 : (fl1 >= 11 ? 10.0 : fl1);
+        const double c2 = fl2 < 0 ? 0.0 : (fl2 >= 11 ? 10.0 : fl2);
+        b0[k] = int32_t(plain ? c0 : 0.0);
+        b1[k] = 11 + int32_t(plain ? c1 : 0.0);
+        b2[k] = 22 + int32_t(plain ? c2 : 0.0);
         ok[k] = plain ? 1.0 : 0.0;
     }
 }
 
-// SPFH of point i (Open3D's ComputeSPFHFeature) over its m neighbours `nbr` (the point itself excluded).
+// SPFH of point i (Open3D's ComputeSPFHFeature) over its m neighbours `nbr` (the point itself excluded), into
+// h (zeroed). Open3D adds 100 / m to a bin once per pair: every term is the same, so a bin that k pairs reach
+// holds the k-th running sum of 100 / m whatever the order. The bins are counted (in four interleaved
+// tallies, so that repeated bins do not wait on one another), then take those sums: the same bits.
 void spfh_of(const double *points, const double *normals, int64_t i, const int32_t *nbr, int64_t m,
              PairScratch &w, double *h) {
     w.resize(m);
@@ -341,17 +356,28 @@ void spfh_of(const double *points, const double *normals, int64_t i, const int32
         w.nx[k] = nn[0], w.ny[k] = nn[1], w.nz[k] = nn[2];
     }
     pair_features(m, &points[3 * i], &normals[3 * i], w);
-    const double incr = 100.0 / double(m);
+    int32_t tally[4][33] = {};
     for (int64_t k = 0; k < m; ++k) {
+        int32_t *t = tally[k & 3];
         if (w.ok[k] == 0.0) {
             const int64_t j = nbr[k];
-            add_pair(&points[3 * i], &normals[3 * i], &points[3 * j], &normals[3 * j], incr, h);
+            int bins[3];
+            pair_bins(&points[3 * i], &normals[3 * i], &points[3 * j], &normals[3 * j], bins);
+            ++t[bins[0]], ++t[bins[1]], ++t[bins[2]];
             continue;
         }
-        h[bin_of(w.t0[k])] += incr;
-        h[11 + bin_of(11 * (w.f1[k] + 1.0) * 0.5)] += incr;
-        h[22 + bin_of(11 * (w.f2[k] + 1.0) * 0.5)] += incr;
+        ++t[w.b0[k]], ++t[w.b1[k]], ++t[w.b2[k]];
     }
+    int32_t count[33], most = 0;
+    for (int j = 0; j < 33; ++j) {
+        count[j] = tally[0][j] + tally[1][j] + tally[2][j] + tally[3][j];
+        most = std::max(most, count[j]);
+    }
+    w.sums.resize(size_t(most) + 1);
+    const double incr = 100.0 / double(m);
+    w.sums[0] = 0.0;
+    for (int32_t c = 1; c <= most; ++c) w.sums[c] = w.sums[c - 1] + incr;
+    for (int j = 0; j < 33; ++j) h[j] = w.sums[count[j]];
 }
 
 // Open3D's weighted sum of the neighbours' SPFH (1 / squared distance) and the sum of each third. The
@@ -368,47 +394,6 @@ void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double 
     }
     for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
 }
-
-#if defined(__GNUC__) && defined(__x86_64__)
-// weighted_sum by AVX-512 without a division per term. Each quotient s / d starts as q = RN(s y), y = RN(1 / d)
-// (within 1.5 ulp), and takes two FMA corrections q <- RN(q + RN(s - d q) y): the first leaves it within an ulp
-// (faithful), the second rounds it correctly, by Markstein's theorem (y within 2^-53 of 1 / d relatively, q
-// faithful, nothing under- or overflowing: Markstein, IBM J. Res. Dev. 34(1), 1990). SPFH values are 0 or in
-// [100 / max_nn, 100], so that holds for squared distances in [1e-200, 1e200]; others divide. The same
-// quotients as the division, added in the same order: the same bits.
-__attribute__((target("avx512f"))) void weighted_sum_avx512(const int32_t *nbr, const double *d2, int64_t m,
-                                                            const double *spfh, double *f, double sum[3]) {
-    constexpr __mmask8 last = 1;  // f[32]
-    __m512d acc[5];
-    for (int c = 0; c < 4; ++c) acc[c] = _mm512_loadu_pd(f + 8 * c);
-    acc[4] = _mm512_maskz_loadu_pd(last, f + 32);
-    for (int64_t k = 0; k < m; ++k) {
-        const double dist = d2[k];
-        if (dist == 0.0) continue;
-        const double *s = &spfh[size_t(nbr[k]) * 33];
-        const __m512d b = _mm512_set1_pd(dist);
-        if (dist >= 1e-200 && dist <= 1e200) {
-            const __m512d y = _mm512_set1_pd(1.0 / dist);
-            for (int c = 0; c < 5; ++c) {
-                const __m512d v = c < 4 ? _mm512_loadu_pd(s + 8 * c) : _mm512_maskz_loadu_pd(last, s + 32);
-                __m512d q = _mm512_mul_pd(v, y);
-                q = _mm512_fmadd_pd(_mm512_fnmadd_pd(q, b, v), y, q);
-                acc[c] = _mm512_add_pd(acc[c], _mm512_fmadd_pd(_mm512_fnmadd_pd(q, b, v), y, q));
-            }
-        } else {
-            for (int c = 0; c < 5; ++c) {
-                const __m512d v = c < 4 ? _mm512_loadu_pd(s + 8 * c) : _mm512_maskz_loadu_pd(last, s + 32);
-                acc[c] = _mm512_add_pd(acc[c], _mm512_div_pd(v, b));
-            }
-        }
-    }
-    for (int c = 0; c < 4; ++c) _mm512_storeu_pd(f + 8 * c, acc[c]);
-    _mm512_mask_storeu_pd(f + 32, last, acc[4]);
-    for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
-}
-#else
-void weighted_sum_avx512(const int32_t *, const double *, int64_t, const double *, double *, double *) {}
-#endif
 
 // The candidates within r2 of (x, y, z): their squared distances ((dx^2 + dy^2) + dz^2, Open3D's order;
 // -ffp-contract=off keeps FMA out) into dd, their indices into ii and their slices (nearest_hits) into sl,
@@ -459,8 +444,8 @@ __attribute__((target("avx512f"))) int64_t hits_within_avx512(double x, double y
     return nh;
 }
 
-// FASTMAC_FPFH_LOOPS=generic: the portable loops of the radius search and the weighted sum (read each call,
-// for tests and benchmarks)
+// FASTMAC_FPFH_LOOPS=generic: the portable loop of the radius search (read each call, for tests and
+// benchmarks)
 bool fpfh_avx512() {
     static const bool cpu = __builtin_cpu_supports("avx512f");
     return cpu && !env_is("FASTMAC_FPFH_LOOPS", "generic");
@@ -728,14 +713,13 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
             }
     });
     std::vector<double> out(size_t(nrows) * 33, 0.0);
-    const bool use512 = fpfh_avx512();
     parallel_for(0, nrows, nthreads, 256, [&](int64_t r, int) {
         const int64_t i = rows ? rows[r] : r;
         const int64_t b = nb.ptr[i], e = nb.end[i];
         if (e - b <= 1) return;
         double *f = &out[size_t(r) * 33];
         double sum[3] = {0.0, 0.0, 0.0};
-        (use512 ? weighted_sum_avx512 : weighted_sum)(&nb.idx[b + 1], &nb.d2[b + 1], e - b - 1, spfh.data(), f, sum);
+        weighted_sum(&nb.idx[b + 1], &nb.d2[b + 1], e - b - 1, spfh.data(), f, sum);
         for (double &s : sum)
             if (s != 0.0) s = 100.0 / s;
         const double *own = &spfh[size_t(i) * 33];
