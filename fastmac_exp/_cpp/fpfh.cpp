@@ -595,7 +595,7 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
                         if (a < ncell && cell_key[a] < k0)
                             a = std::lower_bound(cell_key.begin() + a, cell_key.end(), k0) - cell_key.begin();
                         at[run] = a;
-                        len[run] = 0;
+                        s0[run] = 0, len[run] = 0;
                         if (a == ncell || cell_key[a] > k1) continue;
                         int64_t b = a + 1;
                         while (b < ncell && b < a + (2 * reach + 1) && cell_key[b] <= k1) ++b;
