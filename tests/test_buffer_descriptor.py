@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import pickle
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -385,6 +387,60 @@ def test_sessions_do_not_spin_and_threads_give_the_same_descriptors(room):
             assert opts.intra_op_num_threads == threads
         out[threads] = d.describe(model, room, kp, 1.0)
     np.testing.assert_array_equal(out[1], out[2])
+
+
+@pytest.mark.parametrize("kind", ["buffer", "spinnet"])
+def test_lanes_give_the_same_descriptors_and_share_the_cores(room, kind):
+    """Batches run in lanes (each thread prepares and runs its own batches) describe what one lane does, bit
+    for bit; lanes auto (the config's) opens one-thread sessions on the CPU and runs one lane a core."""
+    from fastmac_exp.descriptors.spinnet import SpinNetDescriptor
+
+    make = BufferDescriptor if kind == "buffer" else SpinNetDescriptor
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        assert compose(config_name="config", overrides=[f"descriptor={kind}"]).descriptor.lanes == "auto"
+    kp = room[np.random.default_rng(5).choice(len(room), 37, replace=False)]
+    out = {}
+    for lanes in (1, 2, 3, "auto"):
+        d = make(threads=0, lanes=lanes, batch_size=4, progress=False, cache_clouds=0, precision="int8")
+        model = d.load("3dmatch")
+        want_threads = 0 if lanes == 1 else 1
+        assert model.desc.get_session_options().intra_op_num_threads == want_threads, lanes
+        if model.ref is not None:  # run once a cloud, outside the lanes: one thread a core
+            assert model.ref.get_session_options().intra_op_num_threads == 0
+        out[lanes] = d.describe(model, room, kp, 1.0)
+        assert d.last_timings.get("lanes", 1) == d.lanes_for(model)
+    assert make(threads=0, progress=False).lanes_for(model) == len(os.sched_getaffinity(0))
+    for lanes in (2, 3, "auto"):
+        np.testing.assert_array_equal(out[lanes], out[1])
+
+
+def test_a_failing_lane_stops_the_others(room, monkeypatch):
+    """An error in one batch ends the describe with that error; the other lanes stop after their batch
+    instead of describing the rest of the cloud."""
+    d = BufferDescriptor(threads=1, lanes=2, batch_size=2, progress=False, cache_clouds=0, precision="int8")
+    model = d.load("3dmatch")
+    calls = []
+    real = BufferDescriptor._model_input
+
+    def failing(self, model, state, k, how, axes):
+        calls.append(len(calls))
+        if len(calls) == 3:
+            raise InputError("batch 3 is bad")
+        if len(calls) > 3:  # the other lane, after the failure: slow, so that stopping it shows
+            time.sleep(0.2)
+        return real(self, model, state, k, how, axes)
+
+    monkeypatch.setattr(BufferDescriptor, "_model_input", failing)
+    kp = room[np.random.default_rng(6).choice(len(room), 40, replace=False)]
+    with pytest.raises(InputError, match="batch 3 is bad"):
+        d.describe(model, room, kp, 1.0)
+    assert len(calls) <= 6  # of 20 batches (the rest would take the other lane 3 s)
+
+
+def test_lanes_must_be_auto_or_a_positive_count():
+    for bad in (0, -1, 1.5, "two", True):
+        with pytest.raises(InputError, match="lanes"):
+            BufferDescriptor(lanes=bad, progress=False)
 
 
 GOLDEN = REPO / "tests" / "data" / "buffer_golden.npz"

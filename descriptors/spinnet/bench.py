@@ -8,16 +8,16 @@ frame 94, random keypoints) at `--keypoints-3dmatch` / `--keypoints-kitti` a clo
 the counts of the code before issue 50, so that every build describes the same keypoints), from an empty
 cache, each run in a fresh process (`describe_once.py`): seconds a cloud, per keypoint, the network's and the
 preparation's part (patches + C++ grouping or pooling; `wait_for_patches` is what the network waited for it).
-`--runs` are this checkout's (precision:onnxruntime threads); `--against PATH` adds the runs `--against-runs`
-of another checkout's build, run by that checkout's own interpreter (`PATH/.venv/bin/python`, e.g. an older
-commit in its own worktree), so both builds are measured side by side in one run: `--repeats` rounds, every
-run once a round, the order rotated each round, so that a change of the machine's load falls on all runs
-alike. Ratios: seconds a keypoint of the yardstick (the other build's first run, else this build's first
-run) and of this build's first run over each run's, per round (paired) and of the medians. Prints the CPU
-model and the load average before and after. Then rotation invariance at each of this build's precisions
+`--runs` are this checkout's (precision:onnxruntime threads[/lanes]); `--against PATH` adds the runs
+`--against-runs` of another checkout's build, run by that checkout's own interpreter (`PATH/.venv/bin/python`,
+e.g. an older commit in its own worktree), so both builds are measured side by side in one run: `--repeats`
+rounds, every run once a round, the order rotated each round, so that a change of the machine's load falls on
+all runs alike. Ratios: seconds a keypoint of the yardstick (the other build's first run, else this build's
+first run) and of this build's first run over each run's, per round (paired) and of the medians. Prints the
+CPU model and the load average before and after. Then rotation invariance at each of this build's precisions
 (in this process): the fragment and 40 of its keypoints rotated about the sensor; the mean cosine between a
-keypoint's descriptors before and after, and how often the rotated keypoint's descriptor is the nearest of
-the 40. Needs ../shared/data; a shared machine only makes it slower.
+keypoint's descriptors before and after, and how often the rotated keypoint's descriptor is the nearest of the
+40. Needs ../shared/data; a shared machine only makes it slower.
 """
 
 from __future__ import annotations
@@ -55,27 +55,35 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q if np.linalg.det(q) > 0 else -q
 
 
-def parse_run(text: str) -> tuple[str, int, str | None]:
-    """precision:threads[:DIR], DIR holding spinnet_<family>_int8.onnx (quantize.py --out DIR)."""
+def parse_run(text: str) -> tuple[str, int, str | None, str]:
+    """precision:threads[/lanes][:DIR], DIR holding spinnet_<family>_int8.onnx (quantize.py --out DIR);
+    lanes: batches run at once ("auto" or a count; 1 where not given, as before lanes existed)."""
     prec, _, rest = text.partition(":")
     threads, _, folder = rest.partition(":")
+    threads, _, lanes = threads.partition("/")
+    lanes = lanes or "1"
     if (
         prec not in ("float32", "int8")
         or not threads.isdigit()
         or int(threads) < 1
+        or not (lanes == "auto" or (lanes.isdigit() and int(lanes) >= 1))
         or (folder and prec != "int8")
     ):
         raise argparse.ArgumentTypeError(
-            f"a run is precision:threads[:DIR] (float32|int8 : >= 1 [: int8 models' folder]), got {text!r}"
+            "a run is precision:threads[/lanes][:DIR] (float32|int8 : >= 1 [/ auto | >= 1] [: int8 models' "
+            f"folder]), got {text!r}"
         )
     if folder and not Path(folder).is_dir():
         raise argparse.ArgumentTypeError(f"run {text!r}: no folder {folder}")
-    return prec, int(threads), folder or None
+    return prec, int(threads), folder or None, lanes
 
 
-def describe_once(python: str, repo: Path, family: str, prec: str, threads: int, folder, args) -> dict:
+def describe_once(
+    python: str, repo: Path, family: str, prec: str, threads: int, folder, args, lanes="1"
+) -> dict:
     """One run in a fresh process of `python` (whose fastmac_exp must come from `repo`); `folder`: where the
-    int8 model is (None: the shipped one)."""
+    int8 model is (None: the shipped one); `lanes` is passed on where it is not 1 (builds before lanes run
+    one batch at a time)."""
     path, voxel = CLOUDS[family]
     cmd = [
         python, str(ONCE), "--repo", str(repo), "--family", family, "--cloud", str(path),
@@ -84,6 +92,8 @@ def describe_once(python: str, repo: Path, family: str, prec: str, threads: int,
     ]  # fmt: skip
     if folder:
         cmd += ["--model", str(Path(folder) / f"spinnet_{family}_int8.onnx")]
+    if lanes != "1":
+        cmd += ["--lanes", lanes]
     done = subprocess.run(cmd, cwd=repo, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-2000:]}{done.stdout}")
@@ -134,9 +144,10 @@ def main(argv=None) -> None:
         "--runs",
         nargs="+",
         type=parse_run,
-        default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2")],
-        help="this checkout's runs, precision:onnxruntime threads[:folder of int8 models] (the first: this "
-        "build's yardstick)",
+        default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2", "int8:1/auto")],
+        help="this checkout's runs, precision:onnxruntime threads[/lanes][:folder of int8 models] (the "
+        "first: this build's yardstick; int8:1/auto is the config's default: one-thread sessions, a lane a "
+        "core)",
     )
     ap.add_argument("--against", type=Path, default=None, help="another checkout, built in PATH/.venv")
     ap.add_argument("--against-python", default=None, help="its interpreter (default PATH/.venv/bin/python)")
@@ -163,12 +174,14 @@ def main(argv=None) -> None:
         python = args.against_python or str(args.against / ".venv" / "bin" / "python")
         if not Path(python).exists():
             ap.error(f"--against: no interpreter {python} (build that checkout in its own .venv)")
-        if any(run[2] for run in args.against_runs):
-            ap.error("--against-runs take the other build's own models (no folder)")
+        if any(run[2] for run in args.against_runs) or any(run[3] != "1" for run in args.against_runs):
+            ap.error("--against-runs take the other build's own models (no folder) and one lane")
         other = [("against", args.against.resolve(), python, *run) for run in args.against_runs]
     runs = other + runs
     label = {
-        run: f"{run[0]}_{run[3]}_threads{run[4]}" + (f"_{Path(run[5]).name}" if run[5] else "")
+        run: f"{run[0]}_{run[3]}_threads{run[4]}"
+        + (f"_lanes{run[6]}" if run[6] != "1" else "")
+        + (f"_{Path(run[5]).name}" if run[5] else "")
         for run in runs
     }
     out = {
@@ -185,7 +198,7 @@ def main(argv=None) -> None:
     for r in range(args.repeats):
         k = r % len(jobs)
         for run, fam in jobs[k:] + jobs[:k]:
-            res = describe_once(run[2], run[1], fam, run[3], run[4], run[5], args)
+            res = describe_once(run[2], run[1], fam, run[3], run[4], run[5], args, run[6])
             out["rounds"][label[run]][fam].append(res)
             print(f"round {r} {label[run]} {fam}", json.dumps(res), flush=True)
     out["median_seconds_a_keypoint"] = {
@@ -199,7 +212,9 @@ def main(argv=None) -> None:
         out["ratio_to_" + this_first] = ratios(out["rounds"], this_first, args.families)
     if not args.no_rotation:
         out["rotation_invariance"] = {
-            label[run]: rotation(1, run[3], run[5]) for run in runs if run[0] == "this" and run[4] == 1
+            label[run]: rotation(1, run[3], run[5])
+            for run in runs
+            if run[0] == "this" and run[4] == 1 and run[6] == "1"
         }
     out["load_average_at_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps({k: v for k, v in out.items() if k != "rounds"}, indent=1))

@@ -33,6 +33,7 @@ def speed(
     batch_size: int = 8,
     keypoints: int | None = None,
     model: str | None = None,
+    lanes: str | None = None,
 ) -> dict:
     """Describe `cloud` (the model's default keypoints, or `keypoints`) from an empty cache and time it; the
     model session and the once-a-process cell table are built before the clock starts. `model`: the path of
@@ -45,6 +46,10 @@ def speed(
     if keypoints is not None:
         kwargs["keypoints"] = keypoints
     accepted = inspect.signature(SpinNetDescriptor).parameters
+    if "lanes" in accepted:  # the runs before lanes existed ran one batch at a time
+        kwargs["lanes"] = 1 if lanes is None else (lanes if lanes == "auto" else int(lanes))
+    elif lanes not in (None, "1"):
+        raise SystemExit(f"this build's SpinNetDescriptor has no lanes, asked {lanes!r}")
     if "precision" in accepted:
         kwargs["precision"] = precision
     elif precision != "float32":
@@ -93,6 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--keypoints", type=int, default=None)
     ap.add_argument("--model", default=None)
+    ap.add_argument("--lanes", default=None, help="auto or a count (default 1, as before lanes existed)")
     args = ap.parse_args(argv)
     import fastmac_exp
 
@@ -101,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"fastmac_exp was imported from {where}, not from the checkout {args.repo}")
     out = speed(
         args.family, args.cloud, args.voxel, args.threads, args.precision, args.batch_size, args.keypoints,
-        args.model,
+        args.model, args.lanes,
     )  # fmt: skip
     print(json.dumps(out | {"fastmac_exp": str(where.parent)}), flush=True)
 

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -479,7 +480,14 @@ def check_ref_contract(sess, path: Path) -> None:
 class BufferModel:
     """One family's Desc (+ Ref) sessions, their parameters and contracts."""
 
-    def __init__(self, desc_path: Path, ref_path: str | None, threads: int, providers="auto") -> None:
+    def __init__(
+        self,
+        desc_path: Path,
+        ref_path: str | None,
+        threads: int,
+        providers="auto",
+        ref_threads: int | None = None,
+    ) -> None:
         self.desc_path = desc_path
         self.threads = threads
         self.desc = _session(desc_path, threads, providers)
@@ -501,7 +509,8 @@ class BufferModel:
             p = Path(name)
             self.ref_path = p if p.is_absolute() or ref_path else desc_path.parent / p
             self.ref_path = resolve_model_path(self.ref_path)
-            self.ref = _session(self.ref_path, threads, providers)
+            # the Ref network runs once a cloud, outside the lanes: its own threads (None: the Desc's)
+            self.ref = _session(self.ref_path, threads if ref_threads is None else ref_threads, providers)
             check_ref_contract(self.ref, self.ref_path)
             rmeta = self.ref.get_modelmeta().custom_metadata_map or {}
             try:
@@ -643,6 +652,7 @@ class BufferDescriptor(FeatureDescriptor):
         graph_key: str | None = None,
         match_keypoints: int | str = 0,
         keypoint_choice: str = "auto",
+        lanes: int | str = "auto",
     ) -> None:
         super().__init__(graph_key)
         self.match_keypoints = check_match_keypoints(match_keypoints)
@@ -655,7 +665,7 @@ class BufferDescriptor(FeatureDescriptor):
             raise InputError(f"buffer axis must be null, 'ref', 'pca' or 'none', got {axis!r}")
         self._set_common(
             "buffer", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
-            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers, lanes,
         )  # fmt: skip
         self._set_precision(precision, model_3dmatch_int8, model_kitti_int8)
         self.ref_model = ref_model
@@ -664,7 +674,7 @@ class BufferDescriptor(FeatureDescriptor):
 
     def _set_common(
         self, label, model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
-        threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+        threads, batch_size, seed, progress, axis, cache_clouds, execution_providers, lanes="auto",
     ) -> None:  # fmt: skip
         """The options and state BUFFER and SpinNet (a subclass) share, checked (`label` names the
         descriptor in the messages)."""
@@ -678,6 +688,10 @@ class BufferDescriptor(FeatureDescriptor):
             raise InputError(f"max_correspondences must be >= 0 (0 = no cap), got {max_correspondences}")
         if threads < 0 or batch_size < 1:
             raise InputError(f"threads must be >= 0 and batch_size >= 1, got {threads}, {batch_size}")
+        counted = not isinstance(lanes, bool) and isinstance(lanes, int | np.integer) and lanes >= 1
+        if lanes != "auto" and not counted:
+            raise InputError(f"{label} lanes must be 'auto' or an integer >= 1, got {lanes!r}")
+        self.lanes = lanes if lanes == "auto" else int(lanes)
         self.model = str(model)
         self.model_3dmatch = str(model_3dmatch)
         self.model_kitti = str(model_kitti)
@@ -751,7 +765,24 @@ class BufferDescriptor(FeatureDescriptor):
     quantize_script = "descriptors/buffer/quantize.py"
 
     def _open_model(self, path: Path) -> BufferModel:
-        return BufferModel(path, self.ref_model, self.threads, self.execution_providers)
+        return BufferModel(
+            path, self.ref_model, self.session_threads(), self.execution_providers, ref_threads=self.threads
+        )
+
+    def session_threads(self) -> int:
+        """onnxruntime's intra-op threads a session run: `threads`, else (0) one where several lanes share
+        the cores (lanes auto or > 1), else one a core (onnxruntime's 0)."""
+        return self.threads if self.threads or self.lanes == 1 else 1
+
+    def lanes_for(self, model) -> int:
+        """How many batches run at once (`lanes`; auto: one a CPU core the process may use where the
+        session runs on the CPU, one on a GPU)."""
+        if self.lanes != "auto":
+            return self.lanes
+        if model.desc.get_providers()[0] != "CPUExecutionProvider":
+            return 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        return max(1, cores or 1)
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:
@@ -869,15 +900,35 @@ class BufferDescriptor(FeatureDescriptor):
         starts = list(range(0, m, bs))
         t_patches = 0.0
 
+        lock = threading.Lock()
+
         def prepare(s: int) -> np.ndarray:
-            nonlocal t_patches  # one worker: no race
+            nonlocal t_patches
             t = time.perf_counter()
             k_axes = None if axes is None else axes[s : s + bs]
             x = self._model_input(model, state, sel[s : s + bs], how, k_axes)
-            t_patches += time.perf_counter() - t
+            with lock:  # lanes prepare in several threads
+                t_patches += time.perf_counter() - t
             return x
 
         bar = keypoint_bar(m, f"{self.title} {what}", self.progress, bs)
+
+        def store(s: int, x: np.ndarray, y: np.ndarray) -> None:
+            if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
+                raise InputError(
+                    f"{self.title} model {model.desc_path} returned {y.shape} for {len(x)} patches, "
+                    f"expected ({len(x)}, {entry.desc.shape[1]})"
+                )
+            norm = np.linalg.norm(y, axis=1, keepdims=True)
+            entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
+            entry.done[todo[s : s + len(y)]] = True
+            bar.update(len(y))
+
+        lanes = min(self.lanes_for(model), len(starts))
+        if lanes > 1:
+            out = self._run_lanes(model, starts, prepare, store, lanes)
+            bar.close()
+            return {**out, "patches_s": t_patches}
         t_prep = t_run = 0.0
         # numpy prepares the next batch while onnxruntime runs this one (both release the GIL)
         with ThreadPoolExecutor(max_workers=1, initializer=block_interrupts) as pool:
@@ -891,17 +942,47 @@ class BufferDescriptor(FeatureDescriptor):
                 y = model.desc.run(None, {model.input_name: x})[0]
                 t_prep += tb - ta
                 t_run += time.perf_counter() - tb
-                if y.ndim != 2 or y.shape[0] != len(x) or y.shape[1] != entry.desc.shape[1]:
-                    raise InputError(
-                        f"{self.title} model {model.desc_path} returned {y.shape} for {len(x)} patches, "
-                        f"expected ({len(x)}, {entry.desc.shape[1]})"
-                    )
-                norm = np.linalg.norm(y, axis=1, keepdims=True)
-                entry.desc[todo[s : s + len(y)]] = y / np.where(norm > 0, norm, 1.0)
-                entry.done[todo[s : s + len(y)]] = True
-                bar.update(len(y))
+                store(s, x, y)
         bar.close()
         return {"wait_for_patches_s": t_prep, "network_s": t_run, "patches_s": t_patches}
+
+    @staticmethod
+    def _run_lanes(model, starts: list[int], prepare, store, lanes: int) -> dict:
+        """The batches `starts` in `lanes` threads, each preparing and running its own batches in turn (a
+        batch's patches and its network run on one core, the lanes on the others), so that no core waits on
+        another's stage; the same descriptors as one lane (a batch's result does not depend on the thread
+        or on onnxruntime's thread count). Where a lane fails or the run is interrupted the others stop
+        after their batch. Seconds: the lanes' network runs, summed."""
+        lock, stop = threading.Lock(), threading.Event()
+        t_run = [0.0] * lanes
+        queue = iter(starts)
+
+        def lane(i: int) -> None:
+            try:
+                while not stop.is_set():
+                    with lock:
+                        s = next(queue, None)
+                    if s is None:
+                        return
+                    x = prepare(s)
+                    t = time.perf_counter()
+                    y = model.desc.run(None, {model.input_name: x})[0]
+                    t_run[i] += time.perf_counter() - t
+                    with lock:
+                        store(s, x, y)
+            except BaseException:
+                stop.set()  # the other lanes end after their batch
+                raise
+
+        with ThreadPoolExecutor(max_workers=lanes, initializer=block_interrupts) as pool:
+            futures = [pool.submit(lane, i) for i in range(lanes)]
+            try:
+                for f in futures:
+                    f.result()
+            except BaseException:
+                stop.set()
+                raise
+        return {"wait_for_patches_s": 0.0, "network_s": sum(t_run), "lanes": lanes}
 
     def _model_input(self, model, state: CloudState, k: np.ndarray, how: str, axes) -> np.ndarray:
         """The network's input for the keypoints `k`: their patches, aligned (`axes`: the keypoints' Ref

@@ -333,6 +333,7 @@ class SpinNetDescriptor(BufferDescriptor):
         cache_clouds: int = 8,
         execution_providers="auto",
         graph_key: str | None = None,
+        lanes: int | str = "auto",
     ) -> None:
         FeatureDescriptor.__init__(self, graph_key)
         if keypoints is not None and keypoints < 0:
@@ -345,7 +346,7 @@ class SpinNetDescriptor(BufferDescriptor):
             raise InputError(f"spinnet axis must be null, 'pca' or 'none', got {axis!r}")
         self._set_common(
             "spinnet", model, model_3dmatch, model_kitti, voxel_size, scale, max_correspondences, mutual,
-            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers,
+            threads, batch_size, seed, progress, axis, cache_clouds, execution_providers, lanes,
         )  # fmt: skip
         self._set_precision(precision, model_3dmatch_int8, model_kitti_int8)
         self.max_keypoints = None if keypoints is None else int(keypoints)
@@ -358,7 +359,7 @@ class SpinNetDescriptor(BufferDescriptor):
     quantize_script = "descriptors/spinnet/quantize.py"
 
     def _open_model(self, path: Path) -> SpinNetModel:
-        return SpinNetModel(path, self.threads, self.execution_providers)
+        return SpinNetModel(path, self.session_threads(), self.execution_providers)
 
     def model_for(self, family: str) -> SpinNetModel:
         if self.model != "auto":
