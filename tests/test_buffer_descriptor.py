@@ -410,6 +410,7 @@ def test_lanes_give_the_same_descriptors_and_share_the_cores(room, kind):
         out[lanes] = d.describe(model, room, kp, 1.0)
         assert d.last_timings.get("lanes", 1) == d.lanes_for(model)
     assert make(threads=0, progress=False).lanes_for(model) == len(os.sched_getaffinity(0))
+    assert make(threads=1, progress=False).lanes_for(model) == 1  # a set thread count is kept to
     for lanes in (2, 3, "auto"):
         np.testing.assert_array_equal(out[lanes], out[1])
 

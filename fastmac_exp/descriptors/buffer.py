@@ -776,10 +776,10 @@ class BufferDescriptor(FeatureDescriptor):
 
     def lanes_for(self, model) -> int:
         """How many batches run at once (`lanes`; auto: one a CPU core the process may use where the
-        session runs on the CPU, one on a GPU)."""
+        session runs on the CPU and `threads` is 0, else one: a set thread count is kept to)."""
         if self.lanes != "auto":
             return self.lanes
-        if model.desc.get_providers()[0] != "CPUExecutionProvider":
+        if self.threads or model.desc.get_providers()[0] != "CPUExecutionProvider":
             return 1
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
         return max(1, cores or 1)
