@@ -65,12 +65,11 @@ def parse_run(text: str) -> tuple[str, int, str | None, str]:
     if (
         prec not in ("float32", "int8")
         or not threads.isdigit()
-        or int(threads) < 1
         or not (lanes == "auto" or (lanes.isdigit() and int(lanes) >= 1))
         or (folder and prec != "int8")
     ):
         raise argparse.ArgumentTypeError(
-            "a run is precision:threads[/lanes][:DIR] (float32|int8 : >= 1 [/ auto | >= 1] [: int8 models' "
+            "a run is precision:threads[/lanes][:DIR] (float32|int8 : >= 0 [/ auto | >= 1] [: int8 models' "
             f"folder]), got {text!r}"
         )
     if folder and not Path(folder).is_dir():
@@ -144,10 +143,10 @@ def main(argv=None) -> None:
         "--runs",
         nargs="+",
         type=parse_run,
-        default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2", "int8:1/auto")],
+        default=[parse_run(r) for r in ("float32:1", "int8:1", "int8:2", "int8:0/auto")],
         help="this checkout's runs, precision:onnxruntime threads[/lanes][:folder of int8 models] (the "
-        "first: this build's yardstick; int8:1/auto is the config's default: one-thread sessions, a lane a "
-        "core)",
+        "first: this build's yardstick; threads 0: onnxruntime's default, or one a lane with lanes; "
+        "int8:0/auto is the config's default: one-thread sessions, a lane a core)",
     )
     ap.add_argument("--against", type=Path, default=None, help="another checkout, built in PATH/.venv")
     ap.add_argument("--against-python", default=None, help="its interpreter (default PATH/.venv/bin/python)")
