@@ -200,6 +200,11 @@ def test_fpfh_of_chosen_rows_equals_those_rows_of_all():
     np.testing.assert_array_equal(one_thread, every)
 
 
+def test_radius_neighbours_refuse_a_cloud_too_wide_for_the_grid():
+    with pytest.raises(ValueError, match="2\\^19 radii"):
+        core.core().radius_neighbours(np.array([[0.0, 0, 0], [1e7, 0, 0]]), 0.01, 10)
+
+
 @pytest.mark.parametrize("case", ["scan", "kitti"])
 def test_fpfh_is_the_same_by_the_avx512_and_the_portable_loops(monkeypatch, case):
     """Bit for bit, normals and features: the AVX-512 radius search against the portable loop."""

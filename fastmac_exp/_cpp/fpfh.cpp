@@ -528,37 +528,14 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
     cloud_min(points, n, lo);
     const double r2 = radius * radius;
     // the grid: cells of half the radius, so that a query's neighbours lie within two cells of its own
-    // (5^3 cells of r / 2 hold 58 % of the points of 3^3 cells of r)
+    // (5^3 cells of r / 2 hold 58 % of the points of 3^3 cells of r); point_grid.hpp's, whose points are
+    // stored by axis in cell order, so that each of a cell's 25 runs of cells is one contiguous copy
     constexpr int64_t reach = 2;
-    const double cell = radius / reach;
-    std::vector<std::pair<uint64_t, int64_t>> keyed(n);
-    std::vector<int64_t> cx(3 * n);
-    for (int64_t i = 0; i < n; ++i) {
-        for (int d = 0; d < 3; ++d) {
-            const double f = std::floor((points[3 * i + d] - lo[d]) / cell) + reach;  // empty cells below
-            if (!(f < double(kAxisMax - reach)))
-                throw std::invalid_argument("radius_neighbours: the cloud spans more than 2^20 cells of the radius");
-            cx[3 * i + d] = int64_t(f);
-        }
-        keyed[i] = {pack(cx[3 * i], cx[3 * i + 1], cx[3 * i + 2]), i};
-    }
-    sort_keyed(keyed);
-    // the points in cell order, by axis (a run of cells is then one contiguous copy of each axis)
-    std::vector<uint64_t> cell_key;
-    std::vector<int64_t> cell_start;
-    std::vector<double> sx(n), sy(n), sz(n);
-    std::vector<int32_t> order(n);
-    for (int64_t k = 0; k < n; ++k) {
-        if (k == 0 || keyed[k].first != keyed[k - 1].first) {
-            cell_key.push_back(keyed[k].first);
-            cell_start.push_back(k);
-        }
-        const int64_t i = keyed[k].second;
-        order[k] = int32_t(i);
-        sx[k] = points[3 * i], sy[k] = points[3 * i + 1], sz[k] = points[3 * i + 2];
-    }
-    const int64_t ncell = int64_t(cell_key.size());
-    cell_start.push_back(n);
+    grid::CellGrid g;
+    if (!grid::build_cells(points, n, radius / reach, lo, g))
+        throw std::invalid_argument("radius_neighbours: the cloud spans more than 2^19 radii");
+    grid::index_columns(g);
+    const int64_t ncell = int64_t(g.cell_key.size());
 
     const int64_t cap = max_nn;
     out.idx.resize(size_t(n) * cap);  // uninitialised (NoInit): each query writes its own slots
@@ -576,48 +553,34 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         std::vector<int32_t, NoInit<int32_t>> qi, ii, sl;
         Hits spare;
         int64_t c0, c1;
-        int64_t at[kRuns];  // each run's first cell: non-decreasing over a chunk's cells (cell keys increase)
-        int64_t s0[kRuns], len[kRuns];
+        int64_t s0[kRuns], s1[kRuns];
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
-                const int64_t first = cell_start[c];
-                const int64_t *g = &cx[3 * order[first]];
+                const int64_t first = g.cell_start[c];
+                const int64_t *q = &g.cx[3 * g.order[first]];
                 int64_t nc = 0;
                 int run = 0;
                 for (int64_t dx = -reach; dx <= reach; ++dx)
                     for (int64_t dy = -reach; dy <= reach; ++dy, ++run) {
-                        // the cells (dx, dy, -reach..reach) are consecutive keys: one search for the run
-                        const uint64_t k0 = pack(g[0] + dx, g[1] + dy, g[2] - reach);
-                        const uint64_t k1 = pack(g[0] + dx, g[1] + dy, g[2] + reach);
-                        int64_t a = c == c0 ? 0 : at[run];
-                        // a short walk on from the previous cell's position, else a binary search past it
-                        for (int steps = 0; a < ncell && cell_key[a] < k0 && steps < 8; ++steps) ++a;
-                        if (a < ncell && cell_key[a] < k0)
-                            a = std::lower_bound(cell_key.begin() + a, cell_key.end(), k0) - cell_key.begin();
-                        at[run] = a;
-                        s0[run] = 0, len[run] = 0;
-                        if (a == ncell || cell_key[a] > k1) continue;
-                        int64_t b = a + 1;
-                        while (b < ncell && b < a + (2 * reach + 1) && cell_key[b] <= k1) ++b;
-                        s0[run] = cell_start[a];
-                        len[run] = cell_start[b] - cell_start[a];
-                        nc += len[run];
+                        grid::run_range(g, q[0] + dx, q[1] + dy, q[2] - reach, q[2] + reach, s0[run], s1[run]);
+                        nc += s1[run] - s0[run];
                     }
                 qx.resize(nc), qy.resize(nc), qz.resize(nc), qi.resize(nc);
-                for (int64_t r = 0, o = 0; r < kRuns; o += len[r], ++r) {
-                    std::copy_n(&sx[s0[r]], len[r], &qx[o]);
-                    std::copy_n(&sy[s0[r]], len[r], &qy[o]);
-                    std::copy_n(&sz[s0[r]], len[r], &qz[o]);
-                    std::copy_n(&order[s0[r]], len[r], &qi[o]);
+                for (int64_t r = 0, o = 0; r < kRuns; o += s1[r] - s0[r], ++r) {
+                    const int64_t len = s1[r] - s0[r];
+                    std::copy_n(&g.sx[s0[r]], len, qx.data() + o);
+                    std::copy_n(&g.sy[s0[r]], len, qy.data() + o);
+                    std::copy_n(&g.sz[s0[r]], len, qz.data() + o);
+                    std::copy_n(&g.order[s0[r]], len, qi.data() + o);  // int64 -> int32: n < 2^31
                 }
                 dd.resize(nc + 8), ii.resize(nc + 16), sl.resize(nc + 16);
-                for (int64_t s = first; s < cell_start[c + 1]; ++s) {
+                for (int64_t s = first; s < g.cell_start[c + 1]; ++s) {
                     const int64_t nh =
-                        use512 ? hits_within_avx512(sx[s], sy[s], sz[s], qx.data(), qy.data(), qz.data(), qi.data(),
-                                                    nc, r2, dd.data(), ii.data(), sl.data())
-                               : hits_within(sx[s], sy[s], sz[s], qx.data(), qy.data(), qz.data(), qi.data(), nc, r2,
-                                             dd.data(), ii.data(), sl.data());
-                    const int64_t i = order[s];
+                        use512 ? hits_within_avx512(g.sx[s], g.sy[s], g.sz[s], qx.data(), qy.data(), qz.data(),
+                                                    qi.data(), nc, r2, dd.data(), ii.data(), sl.data())
+                               : hits_within(g.sx[s], g.sy[s], g.sz[s], qx.data(), qy.data(), qz.data(), qi.data(),
+                                             nc, r2, dd.data(), ii.data(), sl.data());
+                    const int64_t i = g.order[s];
                     const int64_t keep = nearest_hits(dd.data(), ii.data(), sl.data(), nh, cap, spare,
                                                       &out.d2[size_t(i) * cap], &out.idx[size_t(i) * cap]);
                     out.end[i] = i * cap + keep;
