@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -54,6 +53,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fastmac_exp.cpus import available_cores
 from fastmac_exp.descriptors.base import FeatureDescriptor
 from fastmac_exp.descriptors.keypoints import spread_rows
 from fastmac_exp.descriptors.matching import (
@@ -781,8 +781,7 @@ class BufferDescriptor(FeatureDescriptor):
             return self.lanes
         if self.threads or model.desc.get_providers()[0] != "CPUExecutionProvider":
             return 1
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        return max(1, cores or 1)
+        return available_cores()
 
     def load(self, which: str) -> BufferModel:
         if which not in self._models:

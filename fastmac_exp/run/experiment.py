@@ -20,6 +20,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from fastmac_exp import __version__
+from fastmac_exp.cpus import available_cores
 from fastmac_exp.errors import InputError
 from fastmac_exp.geometry.metrics import PAIR_STAGES, summarize
 from fastmac_exp.geometry.trust import TRUST_LEVEL
@@ -400,16 +401,6 @@ def _run_locked(
         exc.run_dir = str(run_dir)  # type: ignore[attr-defined] - where a resume continues it
         raise exc
     return table, summary
-
-
-def available_cores() -> int:
-    """The cores this process may run on (its affinity: a cgroup or taskset may allow fewer than exist)."""
-    import os
-
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except AttributeError:  # no sched_getaffinity (macOS)
-        return max(os.cpu_count() or 1, 1)
 
 
 def concurrent_members(cores: int) -> int:
