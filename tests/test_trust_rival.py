@@ -165,3 +165,42 @@ def test_chance_counter_counts_what_a_brute_force_counts(monkeypatch):
     monkeypatch.setattr(core, "available", lambda: False)
     fallback = trust.ChanceCounter(src, tgt, 0.15)
     assert fallback.tree is not None and fallback(pose) == pytest.approx(brute.sum(1).mean(), rel=1e-12)
+
+
+def test_explained_counts_equal_numpy_per_pose_and_the_fallback_gives_the_same(monkeypatch):
+    """The core's one call for all poses counts what one numpy pass a pose counts (a NaN pose counts 0, an
+    empty set 0 for every pose); without the core, the numpy passes run."""
+    from fastmac_exp import core
+    from fastmac_exp.geometry import trust
+
+    rng = np.random.default_rng(8)
+    src = rng.uniform(-1, 1, (9000, 3))  # more than one chunk of rows (8,192)
+    truth = _rot_z(30.0)
+    truth[:3, 3] = [0.2, 0.1, -0.3]
+    tgt = src @ truth[:3, :3].T + truth[:3, 3] + rng.normal(0, 0.05, src.shape)
+    poses = np.stack([truth, np.eye(4), _rot_z(27.0), np.full((4, 4), np.nan)])
+    poses[2, :3, 3] = truth[:3, 3]
+    per_pose = [int((np.linalg.norm(src @ p[:3, :3].T + p[:3, 3] - tgt, axis=1) < 0.08).sum()) for p in poses]
+    assert per_pose[0] > 4000 > per_pose[2] > per_pose[1] and per_pose[3] == 0  # the cases differ
+    assert trust.explained_counts(src, tgt, poses, 0.08).tolist() == per_pose
+    assert [explained(src, tgt, p, 0.08) for p in poses] == per_pose
+    assert trust.explained_counts(src[:0], tgt[:0], poses, 0.08).tolist() == [0, 0, 0, 0]
+    monkeypatch.setattr(core, "available", lambda: False)
+    assert trust.explained_counts(src, tgt, poses, 0.08).tolist() == per_pose
+
+
+def test_chance_counts_points_exactly_at_the_radius_far_from_the_origin():
+    """count_within's cells are a hair wider than the radius: a lattice of the radius's spacing, a million
+    radii from the origin, still counts each point's six neighbours at exactly the radius (<=), as a k-d
+    tree does."""
+    from scipy.spatial import cKDTree
+
+    from fastmac_exp import core
+
+    if not core.available():
+        pytest.skip("the C++ core is not built")
+    r = 0.125  # a power of two: the lattice's distances are exact
+    lattice = np.stack(np.meshgrid(*[np.arange(5.0)] * 3), -1).reshape(-1, 3) * r + 1e6 * r
+    ref = cKDTree(lattice).query_ball_point(lattice, r, return_length=True)
+    assert ref.max() == 7  # itself and six at exactly r
+    np.testing.assert_array_equal(core.core().count_within(lattice, lattice, r), ref)

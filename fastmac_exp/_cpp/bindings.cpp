@@ -19,6 +19,7 @@ using namespace nb::literals;
 namespace {
 
 using Points = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Poses = nb::ndarray<const double, nb::ndim<3>, nb::c_contig, nb::device::cpu>;
 using Indices = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using Weights = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 
@@ -521,6 +522,21 @@ nb::object count_within(const Points &queries, const Points &points, double radi
     return to_numpy(std::move(c));
 }
 
+nb::object explained_counts(const Points &src, const Points &tgt, const Poses &poses, double threshold,
+                            int num_threads) {
+    if (src.shape(1) != 3 || tgt.shape(1) != 3 || src.shape(0) != tgt.shape(0))
+        throw std::invalid_argument("explained_counts: src and tgt must be (N, 3) with the same N");
+    if (poses.shape(1) != 4 || poses.shape(2) != 4)
+        throw std::invalid_argument("explained_counts: poses must be (H, 4, 4)");
+    std::vector<int64_t> c;
+    {
+        nb::gil_scoped_release nogil;
+        c = fastmac::explained_counts(src.data(), tgt.data(), (int64_t)src.shape(0), poses.data(),
+                                      (int64_t)poses.shape(0), threshold, num_threads);
+    }
+    return to_numpy(std::move(c));
+}
+
 nb::object nearest_rows_fast(const Points &a, const Points &b, int num_threads) {
     if (a.shape(1) != b.shape(1))
         throw std::invalid_argument("a and b must have the same number of columns, got " +
@@ -730,6 +746,8 @@ NB_MODULE(_mac_core, m) {
           "Each point's distance to its nearest other point (exact, from a grid; MAC's mesh resolution is the mean)");
     m.def("count_within", &count_within, "queries"_a, "points"_a, "radius"_a, "num_threads"_a = 0,
           "For each query, how many points lie within radius (squared distance <= radius^2), from a grid");
+    m.def("explained_counts", &explained_counts, "src"_a, "tgt"_a, "poses"_a, "threshold"_a, "num_threads"_a = 0,
+          "For each pose (H, 4, 4), how many correspondences it maps within threshold (|R s + t - q| < threshold)");
     m.def("nearest_rows_fast", &nearest_rows_fast, "a"_a, "b"_a, "num_threads"_a = 0,
           "(nearest_rows' indices by a float32 screen and float64 where needed, runner-up squared distance "
           "in float64, rows whose winner float64 settled)");
