@@ -385,7 +385,9 @@ def test_bad_impl_and_voxel_say_what():
 
 
 @pytest.mark.parametrize("loops", ["auto", "generic"])
-@pytest.mark.parametrize("case", ["scan", "duplicates", "outliers", "line", "two"])
+@pytest.mark.parametrize(
+    "case", ["scan", "duplicates", "outliers", "line", "two", "lattice", "georeferenced"]
+)
 def test_nearest_other_distances_equal_a_kd_tree(monkeypatch, case, loops):
     """Bitwise the k-d tree's distances, by the AVX-512 minimum and the portable loops."""
     monkeypatch.setenv("FASTMAC_RESOLUTION_MIN", loops)
@@ -398,6 +400,11 @@ def test_nearest_other_distances_equal_a_kd_tree(monkeypatch, case, loops):
         "outliers": np.vstack([scan(11, 5000), rng.uniform(-1e4, 1e4, (5, 3)), [[3e5, 0, 0]]]),
         "line": np.c_[np.arange(1000) * 0.01, np.zeros(1000), np.zeros(1000)],
         "two": np.array([[0.0, 0, 0], [0.3, 0.4, 0]]),
+        # points on a lattice sit on the cells' sides, where a query skips a column only when its side is
+        # farther than the best so far; georeferenced: the same far from the origin, where the coordinates'
+        # rounding is a larger share of a cell
+        "lattice": np.stack(np.meshgrid(*[np.arange(24.0) * 0.01] * 3), -1).reshape(-1, 3),
+        "georeferenced": scan(12, 20000) + [4.5e6, 5.6e5, 30.0],
     }[case]
     ref = cKDTree(pts).query(pts, k=2)[0][:, 1]
     for threads in (1, 2):

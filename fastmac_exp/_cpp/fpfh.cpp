@@ -495,7 +495,7 @@ std::vector<double> voxel_downsample(const double *points, int64_t n, double vox
         }
         keyed[k] = {(c[0] * extent[1] + c[1]) * extent[2] + c[2], i};
     });
-    sort_keyed(keyed);
+    sort_keyed(keyed, nthreads);
     // centroids (sums in input order), each with its voxel's scrambled key for the output order
     std::vector<std::pair<uint64_t, int64_t>> order;
     std::vector<double> centre;
@@ -557,7 +557,8 @@ Neighbours radius_neighbours(const double *points, int64_t n, double radius, int
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
                 const int64_t first = g.cell_start[c];
-                const int64_t *q = &g.cx[3 * g.order[first]];
+                int64_t q[3];
+                grid::cell_coords(g, c, q);
                 int64_t nc = 0;
                 int run = 0;
                 for (int64_t dx = -reach; dx <= reach; ++dx)

@@ -9,6 +9,8 @@
 #include <utility>
 #include <vector>
 
+#include "parallel.hpp"
+
 namespace fastmac {
 namespace grid {
 
@@ -37,8 +39,10 @@ inline void cloud_min(const double *p, int64_t n, double lo[3]) {
 }
 
 // Sorts (key, index) pairs by key, then index: an LSD radix sort on the key's bytes that are used
-// (stable, so equal keys keep index order).
-inline void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
+// (stable, so equal keys keep index order). With nthreads > 1 on a large array, each pass counts and
+// scatters fixed chunks in parallel (a chunk's entries keep their order within a digit, and the chunks
+// theirs: the same stable order).
+inline void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v, int nthreads = 1) {
     if (v.size() < 2048) {
         std::sort(v.begin(), v.end());
         return;
@@ -52,12 +56,38 @@ inline void sort_keyed(std::vector<std::pair<uint64_t, int64_t>> &v) {
     const int passes = (bits + 10) / 11, digit = (bits + passes - 1) / passes;
     const uint64_t mask = (uint64_t(1) << digit) - 1;
     std::vector<std::pair<uint64_t, int64_t>> tmp(v.size());
-    std::vector<int64_t> count(size_t(mask) + 2);
+    const int64_t n = int64_t(v.size());
+    constexpr int64_t kParallelFrom = 65536, kChunks = 16;
+    if (nthreads <= 1 || n < kParallelFrom) {
+        std::vector<int64_t> count(size_t(mask) + 2);
+        for (int shift = 0; shift < bits; shift += digit) {
+            std::fill(count.begin(), count.end(), 0);
+            for (const auto &e : v) ++count[((e.first >> shift) & mask) + 1];
+            for (uint64_t b = 0; b <= mask; ++b) count[b + 1] += count[b];
+            for (const auto &e : v) tmp[size_t(count[(e.first >> shift) & mask]++)] = e;
+            v.swap(tmp);
+        }
+        return;
+    }
+    const int64_t buckets = int64_t(mask) + 1, per = (n + kChunks - 1) / kChunks;
+    std::vector<int64_t> count(size_t(kChunks * buckets));
     for (int shift = 0; shift < bits; shift += digit) {
         std::fill(count.begin(), count.end(), 0);
-        for (const auto &e : v) ++count[((e.first >> shift) & mask) + 1];
-        for (uint64_t b = 0; b <= mask; ++b) count[b + 1] += count[b];
-        for (const auto &e : v) tmp[size_t(count[(e.first >> shift) & mask]++)] = e;
+        parallel_for(0, kChunks, nthreads, 1, [&](int64_t c, int) {
+            int64_t *h = count.data() + c * buckets;
+            for (int64_t k = c * per, e = std::min(n, k + per); k < e; ++k) ++h[(v[k].first >> shift) & mask];
+        });
+        int64_t at = 0;  // each (digit, chunk) starts after every smaller digit and, within its digit, the chunks before
+        for (int64_t b = 0; b < buckets; ++b)
+            for (int64_t c = 0; c < kChunks; ++c) {
+                const int64_t m = count[c * buckets + b];
+                count[c * buckets + b] = at;
+                at += m;
+            }
+        parallel_for(0, kChunks, nthreads, 1, [&](int64_t c, int) {
+            int64_t *h = count.data() + c * buckets;
+            for (int64_t k = c * per, e = std::min(n, k + per); k < e; ++k) tmp[size_t(h[(v[k].first >> shift) & mask]++)] = v[k];
+        });
         v.swap(tmp);
     }
 }
@@ -83,18 +113,35 @@ constexpr int64_t kReach = 1;  // cells shifted so that every coordinate is >= k
 // The most (x, y) columns indexed densely (8 bytes each).
 constexpr uint64_t kMaxColumns = uint64_t(1) << 22;
 
-inline bool build_cells(const double *p, int64_t n, double h, const double lo[3], CellGrid &g) {
+inline bool build_cells(const double *p, int64_t n, double h, const double lo[3], CellGrid &g, int nthreads = 1) {
     g.h = h;
     for (int d = 0; d < 3; ++d) g.lo[d] = lo[d];
     g.cx.resize(3 * n);
-    int64_t top[3] = {0, 0, 0};
-    for (int64_t i = 0; i < n; ++i) {
-        for (int d = 0; d < 3; ++d) {
-            const double f = std::floor((p[3 * i + d] - lo[d]) / h) + kReach;
-            if (!(f < double(kAxisMax / 2))) return false;
-            g.cx[3 * i + d] = int64_t(f);
-            top[d] = std::max(top[d], int64_t(f));
+    // in blocks (the threads' share of a large cloud): each block's highest cell, and whether it left the range
+    constexpr int64_t kBlock = 16384;
+    const int64_t blocks = (n + kBlock - 1) / kBlock;
+    std::vector<int64_t> block_top(3 * blocks, 0);
+    std::vector<uint8_t> block_bad(blocks, 0);
+    const int threads = n >= 4 * kBlock ? nthreads : 1;
+    parallel_for(0, blocks, threads, 1, [&](int64_t b, int) {
+        int64_t top[3] = {0, 0, 0};
+        for (int64_t i = b * kBlock, e = std::min(n, i + kBlock); i < e; ++i) {
+            for (int d = 0; d < 3; ++d) {
+                const double f = std::floor((p[3 * i + d] - lo[d]) / h) + kReach;
+                if (!(f < double(kAxisMax / 2))) {
+                    block_bad[b] = 1;
+                    return;
+                }
+                g.cx[3 * i + d] = int64_t(f);
+                top[d] = std::max(top[d], int64_t(f));
+            }
         }
+        for (int d = 0; d < 3; ++d) block_top[3 * b + d] = top[d];
+    });
+    int64_t top[3] = {0, 0, 0};
+    for (int64_t b = 0; b < blocks; ++b) {
+        if (block_bad[b]) return false;
+        for (int d = 0; d < 3; ++d) top[d] = std::max(top[d], block_top[3 * b + d]);
     }
     // a dense key, so that the radix sort makes as few passes as the grid needs; the cells a search can
     // reach (up to 64 rings beyond the cloud) fit in the extents, so any (x, y, z) of a search has one key
@@ -103,24 +150,29 @@ inline bool build_cells(const double *p, int64_t n, double h, const double lo[3]
     if (double(nx) * double(ny) * double(nz) >= 9e18) return false;
     g.ny = ny, g.nz = nz;
     std::vector<std::pair<uint64_t, int64_t>> keyed(n);
-    for (int64_t i = 0; i < n; ++i) {
-        const int64_t *c = &g.cx[3 * i];
-        keyed[i] = {(uint64_t(c[0]) * ny + uint64_t(c[1])) * nz + uint64_t(c[2]), i};
-    }
-    sort_keyed(keyed);
+    parallel_for(0, blocks, threads, 1, [&](int64_t b, int) {
+        for (int64_t i = b * kBlock, e = std::min(n, i + kBlock); i < e; ++i) {
+            const int64_t *c = &g.cx[3 * i];
+            keyed[i] = {(uint64_t(c[0]) * ny + uint64_t(c[1])) * nz + uint64_t(c[2]), i};
+        }
+    });
+    sort_keyed(keyed, threads);
     g.cell_key.clear();
     g.cell_start.clear();
     g.sx.resize(n), g.sy.resize(n), g.sz.resize(n);
     g.order.resize(n);
-    for (int64_t k = 0; k < n; ++k) {
+    for (int64_t k = 0; k < n; ++k)
         if (k == 0 || keyed[k].first != keyed[k - 1].first) {
             g.cell_key.push_back(keyed[k].first);
             g.cell_start.push_back(k);
         }
-        const int64_t i = keyed[k].second;
-        g.order[k] = i;
-        g.sx[k] = p[3 * i], g.sy[k] = p[3 * i + 1], g.sz[k] = p[3 * i + 2];
-    }
+    parallel_for(0, blocks, threads, 1, [&](int64_t b, int) {
+        for (int64_t k = b * kBlock, e = std::min(n, k + kBlock); k < e; ++k) {
+            const int64_t i = keyed[k].second;
+            g.order[k] = i;
+            g.sx[k] = p[3 * i], g.sy[k] = p[3 * i + 1], g.sz[k] = p[3 * i + 2];
+        }
+    });
     g.cell_start.push_back(n);
     g.nx = nx;
     g.column.clear();
@@ -135,6 +187,13 @@ inline void index_columns(CellGrid &g) {
     g.column.assign(ncol + 1, 0);
     for (const uint64_t key : g.cell_key) ++g.column[key / g.nz + 1];
     for (uint64_t c = 0; c < ncol; ++c) g.column[c + 1] += g.column[c];
+}
+
+// The (x, y, z) coordinates of occupied cell c, from its key (a point's cx, read through `order`, is a
+// cache miss a cell on a large cloud).
+inline void cell_coords(const CellGrid &g, int64_t c, int64_t out[3]) {
+    const uint64_t key = g.cell_key[c], column = key / g.nz;
+    out[0] = int64_t(column / g.ny), out[1] = int64_t(column % g.ny), out[2] = int64_t(key % g.nz);
 }
 
 // The sorted positions [s0, s1) of the points of the cells (x, y, z0..z1): consecutive keys, so one

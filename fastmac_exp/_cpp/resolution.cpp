@@ -34,38 +34,40 @@ using grid::kReach;
 // are a vectorised loop: eight a cell took 25-40 ms on 120-300k-point scans where four took 27-61 ms.
 constexpr double kPerCell = 8.0;
 
-// The smallest squared distance from (x, y, z) to the candidates other than position `self`: the distances
-// into `dd`, then their minimum as integers (the bits of non-negative doubles order as the values), so that
-// both loops vectorise without fast-math.
+// The smallest squared distance from (x, y, z) to the points at sorted positions [s0, s1) of the grid other
+// than position `self`, folded into `best`: the distances, then their minimum as integers (the bits of
+// non-negative doubles order as the values), so that both loops vectorise without fast-math.
 #if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
 __attribute__((target_clones("avx512f", "avx2", "default")))
 #endif
 double min_other_d2(double x, double y, double z, const double *__restrict qx, const double *__restrict qy,
-                    const double *__restrict qz, int64_t m, int64_t self, double *__restrict dd) {
+                    const double *__restrict qz, int64_t s0, int64_t s1, int64_t self, double best,
+                    double *__restrict dd) {
+    const int64_t m = s1 - s0;
+    qx += s0, qy += s0, qz += s0;
     for (int64_t t = 0; t < m; ++t) {
         const double ex = x - qx[t], ey = y - qy[t], ez = z - qz[t];
         dd[t] = ex * ex + ey * ey + ez * ez;
     }
-    if (self < m) dd[self] = std::numeric_limits<double>::infinity();
+    if (self >= s0 && self < s1) dd[self - s0] = std::numeric_limits<double>::infinity();
     const int64_t *bits = reinterpret_cast<const int64_t *>(dd);
-    int64_t best = std::numeric_limits<int64_t>::max();
-    for (int64_t t = 0; t < m; ++t) best = std::min(best, bits[t]);
-    double out;
-    std::memcpy(&out, &best, 8);
-    return best == std::numeric_limits<int64_t>::max() ? std::numeric_limits<double>::infinity() : out;
+    int64_t low;
+    std::memcpy(&low, &best, 8);
+    for (int64_t t = 0; t < m; ++t) low = std::min(low, bits[t]);
+    std::memcpy(&best, &low, 8);
+    return best;
 }
 
 #if defined(__GNUC__) && defined(__x86_64__)
 // min_other_d2 in one pass of AVX-512: the same squared distances (the same operations in the same order,
 // no FMA: -ffp-contract=off) and their exact minimum, the query's own position masked to +inf.
 __attribute__((target("avx512f"))) double min_other_d2_avx512(double x, double y, double z, const double *qx,
-                                                               const double *qy, const double *qz, int64_t m,
-                                                               int64_t self) {
+                                                               const double *qy, const double *qz, int64_t s0,
+                                                               int64_t s1, int64_t self, double best_in) {
     const __m512d px = _mm512_set1_pd(x), py = _mm512_set1_pd(y), pz = _mm512_set1_pd(z);
-    const __m512d inf = _mm512_set1_pd(std::numeric_limits<double>::infinity());
-    __m512d best = inf;
-    for (int64_t t = 0; t < m; t += 8) {
-        __mmask8 lanes = m - t >= 8 ? __mmask8(0xff) : __mmask8((1u << (m - t)) - 1u);
+    __m512d best = _mm512_set1_pd(best_in);
+    for (int64_t t = s0; t < s1; t += 8) {
+        __mmask8 lanes = s1 - t >= 8 ? __mmask8(0xff) : __mmask8((1u << (s1 - t)) - 1u);
         if (self >= t && self < t + 8) lanes &= __mmask8(~(1u << (self - t)));
         const __m512d ex = _mm512_sub_pd(px, _mm512_maskz_loadu_pd(lanes, qx + t));
         const __m512d ey = _mm512_sub_pd(py, _mm512_maskz_loadu_pd(lanes, qy + t));
@@ -84,7 +86,7 @@ bool min_avx512() {
 #else
 bool min_avx512() { return false; }
 double min_other_d2_avx512(double, double, double, const double *, const double *, const double *, int64_t,
-                           int64_t) {
+                           int64_t, int64_t, double) {
     return 0.0;
 }
 #endif
@@ -127,9 +129,10 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
             h *= std::max(0.25, std::sqrt(kPerCell / per_cell));
         }
     }
+    nthreads = resolve_threads(nthreads, n);
     CellGrid g;
     for (int round = 0; round < 4; ++round) {
-        if (!build_cells(p, n, h, lo, g)) {
+        if (!build_cells(p, n, h, lo, g, nthreads)) {
             h *= 4.0;
             continue;
         }
@@ -139,40 +142,59 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
         if (round == 3 || std::fabs(scale - 1.0) < 0.05) break;
         h *= std::min(4.0, std::max(0.25, scale));
     }
-    if (g.cell_key.empty() && !build_cells(p, n, h, lo, g))
+    if (g.cell_key.empty() && !build_cells(p, n, h, lo, g, nthreads))
         throw std::invalid_argument("nearest_other_distances: the cloud spans too many cells");
     index_columns(g);
-
     const int64_t ncell = int64_t(g.cell_key.size());
-    nthreads = resolve_threads(nthreads, n);
     const bool use512 = min_avx512();
     DynamicRange range(0, ncell, 64);
+    // A cell's 9 columns of 3 cells around it, each a run of sorted positions read in place. A query takes
+    // its own column, then each other column only where that column's side is nearer than the best so far
+    // (most queries: one or two of the eight; a point there is at least that far, so the minimum is the
+    // same as over all 27 cells). The sides are moved out by a hair for a point that rounding put in the next
+    // cell: 1e-6 of a cell, and a few units in the last place of the coordinates (far from the origin).
+    double big = 0.0;
+    for (int d = 0; d < 3; ++d) big = std::max({big, std::fabs(lo[d]), std::fabs(hi[d])});
+    const double side_margin = g.h * 1e-6 + 64.0 * std::numeric_limits<double>::epsilon() * big;
     parallel_region(nthreads, [&](int) {
-        std::vector<double> qx, qy, qz, dd;
+        std::vector<double> dd;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
                 const int64_t first = g.cell_start[c], last = g.cell_start[c + 1];
-                const int64_t *cc = &g.cx[3 * g.order[first]];
-                qx.clear(), qy.clear(), qz.clear();
-                int64_t own = 0;  // where the cell's own points start among the candidates
+                int64_t cc[3];
+                grid::cell_coords(g, c, cc);
+                int64_t r0[9], r1[9];
+                int64_t longest = 0;
                 for (int64_t dx = -1; dx <= 1; ++dx)
                     for (int64_t dy = -1; dy <= 1; ++dy) {
-                        int64_t s0, s1;
-                        run_range(g, cc[0] + dx, cc[1] + dy, cc[2] - 1, cc[2] + 1, s0, s1);
-                        if (s0 <= first && first < s1) own = int64_t(qx.size()) + (first - s0);
-                        qx.insert(qx.end(), g.sx.begin() + s0, g.sx.begin() + s1);
-                        qy.insert(qy.end(), g.sy.begin() + s0, g.sy.begin() + s1);
-                        qz.insert(qz.end(), g.sz.begin() + s0, g.sz.begin() + s1);
+                        const int64_t k = (dx + 1) * 3 + (dy + 1);
+                        run_range(g, cc[0] + dx, cc[1] + dy, cc[2] - 1, cc[2] + 1, r0[k], r1[k]);
+                        longest = std::max(longest, r1[k] - r0[k]);
                     }
-                const int64_t m = int64_t(qx.size());
-                dd.resize(m);
+                if (!use512) dd.resize(size_t(longest));
+                const double x_lo = g.lo[0] + double(cc[0] - kReach) * g.h, x_hi = x_lo + g.h;
+                const double y_lo = g.lo[1] + double(cc[1] - kReach) * g.h, y_hi = y_lo + g.h;
                 for (int64_t s = first; s < last; ++s) {
                     const double x = g.sx[s], y = g.sy[s], z = g.sz[s];
-                    // the query itself sits at one position of the candidates: the minimum of both sides
-                    const int64_t self = own + (s - first);
-                    double best = use512 ? min_other_d2_avx512(x, y, z, qx.data(), qy.data(), qz.data(), m, self)
-                                         : min_other_d2(x, y, z, qx.data(), qy.data(), qz.data(), m, self, dd.data());
+                    auto fold = [&](int64_t k, double b) {
+                        return use512 ? min_other_d2_avx512(x, y, z, g.sx.data(), g.sy.data(), g.sz.data(), r0[k],
+                                                            r1[k], s, b)
+                                      : min_other_d2(x, y, z, g.sx.data(), g.sy.data(), g.sz.data(), r0[k], r1[k], s,
+                                                     b, dd.data());
+                    };
+                    double best = fold(4, std::numeric_limits<double>::infinity());
+                    const double gx[3] = {std::max(0.0, x - x_lo - side_margin), 0.0,
+                                          std::max(0.0, x_hi - x - side_margin)};
+                    const double gy[3] = {std::max(0.0, y - y_lo - side_margin), 0.0,
+                                          std::max(0.0, y_hi - y - side_margin)};
+                    // the four sides, then the four corners
+                    static constexpr int kOrder[8] = {1, 3, 5, 7, 0, 2, 6, 8};
+                    for (const int k : kOrder) {
+                        if (r1[k] == r0[k]) continue;
+                        const double ax = gx[k / 3], ay = gy[k % 3];
+                        if (ax * ax + ay * ay < best) best = fold(k, best);
+                    }
                     // rings 2, 3, ... while a point there could be closer (ring r is >= (r - 1) h away, less a
                     // hair for a point that rounding put in the next cell)
                     const double hh = g.h * (1.0 - 1e-9);
