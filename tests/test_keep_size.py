@@ -191,6 +191,28 @@ def test_bounded_mac_gives_the_exact_pose_on_a_near_clique():
         assert rotation_error_deg(bounded.pose[:3, :3], gt[:3, :3]) < 1.0
 
 
+def test_product_bound_skips_its_estimate_only_where_it_cannot_pass_the_budget(monkeypatch):
+    """The predicted work is at most n (n - 1)^2 (every estimated degree <= n - 1): on the densest input there
+    is (every pair compatible) the estimate stays within it, and bounded_subset skips the estimate exactly
+    where that bound is within the budget."""
+    from dataclasses import replace
+
+    from fastmac_exp import core
+    from fastmac_exp.backends import product_bound as pb
+
+    corr, _, params = _near_clique(n=1_200)
+    tight = replace(corr, tgt=corr.src.copy())  # every pair consistent: the largest degrees there are
+    n = len(corr)
+    assert pb.product_work(pb.estimated_degrees(tight.src, tight.tgt, params)) <= n * (n - 1) ** 2
+    calls = []
+    real = core.anchor_degree
+    monkeypatch.setattr(core, "anchor_degree", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert pb.bounded_subset(tight.src, tight.tgt, replace(params, max_product_work=n * (n - 1) ** 2)) is None
+    assert not calls  # skipped: it could not have passed
+    sub = pb.bounded_subset(tight.src, tight.tgt, replace(params, max_product_work=n * (n - 1) ** 2 / 8))
+    assert calls and sub is not None and len(sub) < n  # just past the bound: estimated, and bounded
+
+
 def test_max_product_work_is_checked():
     with pytest.raises(InputError, match="mac.max_product_work must be >= 0"):
         mac_params_for("kitti", "fpfh", mac_overrides={"max_product_work": -1})
