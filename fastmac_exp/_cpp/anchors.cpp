@@ -140,16 +140,31 @@ double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorS
         }
         for (int l = 0; l < kLanes; ++l) sum += lane_sum[l], cnt += lane_cnt[l];
     } else {
+        // the anchors within the edge distance first, in blocks by a loop that vectorises (few pass on a sparse
+        // graph), then the exp of those only, in increasing r as before: the same sum
         const float lim = A.max_d;
-        for (int64_t r = r0; r < r1; ++r) {
-            if (dd[r] > lim) continue;
-            const float w = weight_of(dd[r], A);
-            if (w >= A.threshold) sum += w, ++cnt;
+        constexpr int64_t kBlock = 256;
+        int32_t near[kBlock];
+        for (int64_t b = r0; b < r1; b += kBlock) {
+            const int64_t e = std::min(r1, b + kBlock);
+            int32_t k = 0;
+            for (int64_t r = b; r < e; ++r) {
+                near[k] = int32_t(r);
+                k += dd[r] <= lim;
+            }
+            for (int32_t t = 0; t < k; ++t) {
+                const float w = weight_of(dd[near[t]], A);
+                if (w >= A.threshold) sum += w, ++cnt;
+            }
         }
     }
-    // the row's own draws (a_r == i) are no anchors of it: take them back out
-    for (int64_t r = r0; r < r1; ++r)
+    // the row's own draws (a_r == i) are no anchors of it: take them back out (found by a loop that
+    // vectorises; most rows have none)
+    int64_t own = 0;
+    for (int64_t r = r0; r < r1; ++r) own += A.idx[r] == i;
+    for (int64_t r = r0; own > 0 && r < r1; ++r)
         if (A.idx[r] == i) {
+            --own;
             const float w = weight_of(dd[r], A);
             if (dd[r] <= A.max_d && w >= A.threshold) sum -= w, --cnt;
         }
