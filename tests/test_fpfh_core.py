@@ -381,6 +381,16 @@ def test_bad_impl_and_voxel_say_what():
         fpfh_features(np.array([[0.0, 0, 0], [1e9, 0, 0]] * 10), 1e-3, impl="core")
 
 
+def test_voxel_grid_of_a_large_cloud_is_the_same_for_any_thread_count():
+    """From 65,536 points the grid's radix passes run in parallel chunks: stable, so the voxels' points keep
+    input order and the centroids (sums in that order) come out bit for bit as with one thread."""
+    pts = np.vstack([scan(21, 60000), scan(22, 60000) + 0.0013])  # 120,000 points, many to a voxel
+    one = core.core().voxel_downsample(pts, 0.05, num_threads=1)
+    assert len(one) < len(pts) // 4
+    for threads in (2, 3):
+        np.testing.assert_array_equal(core.core().voxel_downsample(pts, 0.05, num_threads=threads), one)
+
+
 # -- mesh resolution ---------------------------------------------------------------------------------------
 
 

@@ -140,7 +140,7 @@ double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorS
         }
         for (int l = 0; l < kLanes; ++l) sum += lane_sum[l], cnt += lane_cnt[l];
     } else {
-        // the anchors within the edge distance first, in blocks by a loop that vectorises (few pass on a sparse
+        // the anchors within the edge distance first, in blocks by a branch-free loop (few pass on a sparse
         // graph), then the exp of those only, in increasing r as before: the same sum
         const float lim = A.max_d;
         constexpr int64_t kBlock = 256;
