@@ -12,6 +12,7 @@
 #include "mac_core.hpp"
 #include "selection.hpp"
 #include "turboreg.hpp"
+#include "within.hpp"
 
 namespace nb = nanobind;
 using namespace nb::literals;

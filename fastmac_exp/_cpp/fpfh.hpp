@@ -93,13 +93,5 @@ Matches nearest_rows_fast(const double *a, int64_t na, const double *b, int64_t 
 // Each point's distance to its nearest other point (resolution.cpp; 0 for a repeated point).
 std::vector<double> nearest_other_distances(const double *points, int64_t n, int nthreads);
 
-// For each of m queries, how many of the n points lie within `radius` (squared distance <= radius^2;
-// within.cpp). Queries that are not finite count 0; a point that is not finite is refused.
-std::vector<int64_t> count_within(const double *queries, int64_t m, const double *points, int64_t n, double radius,
-                                  int nthreads);
-// For each of h row-major 4 x 4 poses, how many of the n correspondences (src_i, tgt_i) it maps within
-// `threshold` (|R s + t - q| < threshold; within.cpp).
-std::vector<int64_t> explained_counts(const double *src, const double *tgt, int64_t n, const double *poses, int64_t h,
-                                      double threshold, int nthreads);
 
 }  // namespace fastmac

@@ -2,9 +2,10 @@
 // fastmac_exp/geometry/resolution.py), exactly, from a uniform grid: a 3DMatch fragment at full resolution has
 // 300,000 points, where a single-threaded k-d tree took ~0.3 s a cloud.
 //
-// The cell is sized for about four points an occupied cell. A query looks at its own cell and the 26
-// around it; a point outside those is at least one cell away, so a nearest distance below one cell is
-// final, and otherwise the search widens ring by ring until the next ring cannot hold anything closer.
+// The cell is sized for about eight points an occupied cell. A query looks at its own cell and the 26
+// around it (their columns that can still hold something nearer); a point outside those is at least one
+// cell away, so a nearest distance below one cell is final, and otherwise the search widens ring by ring
+// until the next ring cannot hold anything closer.
 #include <algorithm>
 #include <cmath>
 #include <cstring>

@@ -1,7 +1,7 @@
-// How many points of a cloud lie within a radius of each query point (the trust test's chance count,
-// fastmac_exp/geometry/trust.py): a grid of cells of the radius over the cloud; the queries, grouped by the
-// cell they fall in, share the candidates of the 3 x 3 x 3 cells around it, and a point counts when its
-// squared distance ((dx^2 + dy^2) + dz^2) is <= radius^2, as scipy's cKDTree.query_ball_point(...,
+// The trust test's counts (fastmac_exp/geometry/trust.py). count_within: how many points of a cloud lie within
+// a radius of each query point (the chance count): a grid of cells of the radius over the cloud; the queries,
+// grouped by the cell they fall in, share the candidates of the 3 x 3 x 3 cells around it, and a point counts
+// when its squared distance ((dx^2 + dy^2) + dz^2) is <= radius^2, as scipy's cKDTree.query_ball_point(...,
 // return_length=True) counts, which this replaces (one thread there, ~6 ms for 4,000 matches of a 3DMatch
 // pair at tau = 10 cm).
 #include <cmath>
@@ -13,6 +13,7 @@
 #include "mac_core.hpp"
 #include "parallel.hpp"
 #include "point_grid.hpp"
+#include "within.hpp"
 
 namespace fastmac {
 
@@ -94,8 +95,8 @@ std::vector<int64_t> count_within(const double *queries, int64_t m, const double
     return out;
 }
 
-// For each of h poses (row-major 4 x 4), how many correspondences it maps within `threshold` of their
-// target: |R s_i + t - q_i| < threshold, the residual's norm as numpy's (the trust test's `explained`, which
+// explained_counts: for each of h poses (row-major 4 x 4), how many correspondences it maps within
+// `threshold` of their target: |R s_i + t - q_i| < threshold, the residual's norm as numpy's (the trust test's `explained`, which
 // ran one numpy pass a pose: ~0.1 ms of interpreter and temporaries each on 4,000 matches, sixteen of them for
 // the rivals). Chunks of (pose, rows) across the threads; a pose's count is the sum of its chunks'.
 std::vector<int64_t> explained_counts(const double *src, const double *tgt, int64_t n, const double *poses, int64_t h,

@@ -72,7 +72,7 @@ def bounded_subset(src: np.ndarray, tgt: np.ndarray, params: MacParams) -> np.nd
         return None
     # a degree is at most n - 1 (weights <= 1; the estimate is scaled to n - 1 anchors), so the predicted
     # work is at most n (n - 1)^2: within the budget, the estimate cannot pass it (FastMAC's keeps of
-    # <= 1,442 at the default budget: the estimate cost ~0.3 ms a call there)
+    # <= 1,442 at the default budget: the estimate cost 0.5-0.7 ms a call there)
     if float(n) * float(n - 1) ** 2 <= params.max_product_work:
         return None
     degree = estimated_degrees(src, tgt, params)
