@@ -8,7 +8,6 @@
 #include <cstring>
 #include <numeric>
 
-#include <thread>
 
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -396,9 +395,9 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
     sink.start(nthreads);
     std::vector<int64_t> counts(nthreads, 0);
     DynamicRange roots(0, n, 4);
-    std::atomic<int> inside{0};
+    Inside inside;
     parallel_region(nthreads, [&](int tid) {
-        inside.fetch_add(1);
+        inside.enter();
         Worker wk(g, min_size, sh, sink, tid);
         int64_t lo, hi;
         while (!sh.stop.load(std::memory_order_relaxed) && roots.next(lo, hi))
@@ -409,16 +408,15 @@ int64_t enumerate_maximal_cliques(const AdjGraph &g, int min_size, const CliqueC
             int expected = 0;
             sh.why.compare_exchange_strong(expected, 4);
         }
-        inside.fetch_sub(1);
+        inside.leave();
         if (tid == 0)  // the caller: wait for the others here, where Ctrl-C can still be seen
-            while (inside.load() > 0) {
+            inside.wait([&] {
                 if (interrupt.check()) {
                     int expected = 0;
                     sh.why.compare_exchange_strong(expected, 3);
                     sh.stop.store(true);
                 }
-                std::this_thread::sleep_for(std::chrono::microseconds(200));
-            }
+            });
     });
     if (sh.why.load() == 3) throw Interrupted();
     if (give_up) {

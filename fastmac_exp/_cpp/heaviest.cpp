@@ -61,7 +61,6 @@
 #include <cstdlib>
 #include <memory>
 #include <string>
-#include <thread>
 
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -860,19 +859,18 @@ template <class F>
 void run_parallel(int64_t count, int64_t chunk, int nthreads, std::vector<std::unique_ptr<Searcher>> &searchers,
                   Control &ctl, Interrupt &interrupt, F &&body) {
     DynamicRange range(0, count, chunk);
-    std::atomic<int> inside{0};
+    Inside inside;
     parallel_region(nthreads, [&](int tid) {
-        inside.fetch_add(1);
+        inside.enter();
         int64_t lo, hi;
         while (!ctl.stop.load(std::memory_order_relaxed) && range.next(lo, hi))
             for (int64_t k = lo; k < hi && !ctl.stop.load(std::memory_order_relaxed); ++k)
                 body(k, *searchers[tid]);
-        inside.fetch_sub(1);
+        inside.leave();
         if (tid == 0)
-            while (inside.load() > 0) {
+            inside.wait([&] {
                 if (interrupt.check()) ctl.halt(3);
-                std::this_thread::sleep_for(std::chrono::microseconds(200));
-            }
+            });
     });
 }
 

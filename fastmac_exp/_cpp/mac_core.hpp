@@ -44,6 +44,11 @@ inline int64_t pair_work_size(int64_t n) {
     return n * (n - 1) / 2 >= (int64_t(1) << 18) ? std::max(n, kSerialBelow) : n;
 }
 int default_threads();  // OMP_NUM_THREADS if set, else the hardware's thread count
+// num_threads when set (> 0), else every thread where the stage's own measure of work says they pay.
+inline int threads_if(int num_threads, bool pays) { return num_threads > 0 ? num_threads : pays ? default_threads() : 1; }
+// MAC's clique search and hypotheses: where two threads paid on the real pairs (mac.cpp).
+constexpr int64_t kSearchThreadsFromEdges = 1536;
+constexpr int64_t kHypothesisThreadsFromWork = int64_t(1) << 16;  // hypotheses x correspondences
 
 // The core's switches for tests and comparisons (FASTMAC_DENSE_CORE, FASTMAC_DOMINANCE, ...): the
 // environment variable `name` equals `value`.

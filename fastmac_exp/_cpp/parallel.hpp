@@ -15,6 +15,8 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
+#include <condition_variable>
 #include <cstdint>
 #include <exception>
 #include <mutex>
@@ -91,5 +93,40 @@ void parallel_for(int64_t begin, int64_t end, int nthreads, int64_t chunk, F &&b
             for (int64_t i = lo; i < hi; ++i) body(i, tid);
     });
 }
+
+// The threads inside a region's long loop, for the caller to wait on where Ctrl-C can still be seen: each
+// thread enter()s and leave()s; wait(poll) returns as soon as the last one has left (woken by it, not by a
+// sleep's end: a 200 us sleep made a 0.35 ms clique search take 0.57 on two threads) and calls poll()
+// every `every` meanwhile.
+class Inside {
+   public:
+    void enter() {
+        std::lock_guard<std::mutex> lock(mu_);
+        ++count_;
+    }
+    void leave() {
+        bool last;
+        {
+            std::lock_guard<std::mutex> lock(mu_);
+            last = --count_ == 0;
+        }
+        if (last) cv_.notify_all();
+    }
+    template <class Poll>
+    void wait(Poll &&poll, std::chrono::microseconds every = std::chrono::microseconds(200)) {
+        std::unique_lock<std::mutex> lock(mu_);
+        while (count_ > 0) {
+            if (cv_.wait_for(lock, every, [this] { return count_ == 0; })) return;
+            lock.unlock();
+            poll();
+            lock.lock();
+        }
+    }
+
+   private:
+    std::mutex mu_;
+    std::condition_variable cv_;
+    int count_ = 0;
+};
 
 }  // namespace fastmac
