@@ -200,6 +200,26 @@ def test_fpfh_of_chosen_rows_equals_those_rows_of_all():
     np.testing.assert_array_equal(one_thread, every)
 
 
+def test_unit_rows_in_the_core_equal_numpys_bit_for_bit():
+    # the core divides each FPFH row by its norm as np.linalg.norm sums it (pairwise, eight running sums);
+    # a plain sum of the squares differs in the last bit on many rows, and isolated points give zero rows
+    voxel = 0.05
+    kp = core.core().voxel_downsample(scan(5), voxel)
+    kp = np.vstack([kp, [[50.0, 50.0, 50.0], [-50.0, 50.0, 50.0]]])  # no neighbours: zero rows
+    _, raw = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3))
+    _, unit = core.core().fpfh_describe(kp, 2 * voxel, 30, 5 * voxel, 100, np.zeros(3), normalize=True)
+    norm = np.linalg.norm(raw, axis=1, keepdims=True)
+    assert (norm[-2:] == 0).all() and (norm[:-2] > 0).all()
+    np.testing.assert_array_equal(unit, raw / np.where(norm > 0, norm, 1.0))
+    plain = np.sqrt(np.array([sum(float(x) * float(x) for x in row) for row in raw[:-2]]))
+    assert (plain != norm[:-2, 0]).any()  # so the test can tell the two sums apart
+    for dim in (5, 33, 200, 300):  # under eight terms, one block of eight sums, halves above 128 and 256
+        x = np.random.default_rng(dim).normal(size=(700, dim))
+        x[3] = 0.0
+        norm = np.linalg.norm(x, axis=1, keepdims=True)
+        np.testing.assert_array_equal(core.core().unit_rows(x), x / np.where(norm > 0, norm, 1.0))
+
+
 def test_radius_neighbours_refuse_a_cloud_too_wide_for_the_grid():
     with pytest.raises(ValueError, match="2\\^19 radii"):
         core.core().radius_neighbours(np.array([[0.0, 0, 0], [1e7, 0, 0]]), 0.01, 10)

@@ -468,7 +468,7 @@ nb::object radius_neighbours(const Points &points, double radius, int64_t max_nn
 // `viewpoint` (None: as the eigensolver gives them), FPFH of `rows` (None: every keypoint).
 nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t normal_max_nn, double feature_radius,
                          int64_t feature_max_nn, nb::object viewpoint, nb::object rows, int num_threads,
-                         nb::object normals_in) {
+                         nb::object normals_in, bool normalize) {
     if (keypoints.shape(1) != 3) throw std::invalid_argument("fpfh_describe: keypoints must be (N, 3)");
     const int64_t n = (int64_t)keypoints.shape(0);
     double vp[3] = {0, 0, 0};
@@ -496,9 +496,19 @@ nb::object fpfh_describe(const Points &keypoints, double normal_radius, int64_t 
         feat = fastmac::describe_fpfh(keypoints.data(), n, normal_radius, normal_max_nn, feature_radius,
                                       feature_max_nn, has_vp ? vp : nullptr, has_rows ? sel.data() : nullptr,
                                       (int64_t)sel.size(), normals, num_threads);
+        if (normalize) fastmac::unit_rows(feat.data(), (int64_t)feat.size() / 33, 33, num_threads);
     }
     const size_t m = feat.size() / 33;
     return nb::make_tuple(to_numpy(std::move(normals), {(size_t)n, 3}), to_numpy(std::move(feat), {m, 33}));
+}
+
+nb::object unit_rows(const Points &x, int num_threads) {
+    std::vector<double> y(x.data(), x.data() + x.size());
+    {
+        nb::gil_scoped_release nogil;
+        fastmac::unit_rows(y.data(), (int64_t)x.shape(0), (int64_t)x.shape(1), num_threads);
+    }
+    return to_numpy(std::move(y), {(size_t)x.shape(0), (size_t)x.shape(1)});
 }
 
 nb::object nearest_other_distances(const Points &points, int num_threads) {
@@ -741,8 +751,11 @@ NB_MODULE(_mac_core, m) {
           "Open3D's hybrid search over a cloud itself: CSR dict(ptr, idx, d2), nearest first, at most max_nn");
     m.def("fpfh_describe", &fpfh_describe, "keypoints"_a, "normal_radius"_a, "normal_max_nn"_a, "feature_radius"_a,
           "feature_max_nn"_a, "viewpoint"_a = nb::none(), "rows"_a = nb::none(), "num_threads"_a = 0,
-          "normals"_a = nb::none(),
-          "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions; given normals are used as they are");
+          "normals"_a = nb::none(), "normalize"_a = false,
+          "(normals (N, 3), FPFH (rows, 33)) with Open3D's definitions; given normals are used as they are; "
+          "normalize: each row divided by its norm as numpy's np.linalg.norm gives it (bit for bit)");
+    m.def("unit_rows", &unit_rows, "x"_a, "num_threads"_a = 0,
+          "x / np.linalg.norm(x, axis=1, keepdims=True) bit for bit (rows of norm 0 unchanged), as a new array");
     m.def("nearest_other_distances", &nearest_other_distances, "points"_a, "num_threads"_a = 0,
           "Each point's distance to its nearest other point (exact, from a grid; MAC's mesh resolution is the mean)");
     m.def("count_within", &count_within, "queries"_a, "points"_a, "radius"_a, "num_threads"_a = 0,

@@ -175,11 +175,13 @@ inline double exact_value(const double *ar, const double *bj, double bbj, int64_
 }
 
 // The principal axes of the rows of b (up to kAxes of them, as rows of `axes`, and the mean), from the
-// covariance of at most 4,096 evenly spaced rows by subspace iteration.
+// covariance of ~1,024 evenly spaced rows by subspace iteration. The axes only order the trees (the
+// matches are exact in any order); from 4,096 rows the covariance, on one thread, was 0.4-0.5 ms of a
+// 4.7 ms fragment match and a 14.6 ms KITTI one, with no better pruning.
 constexpr int kAxes = 8;
 
 void principal_axes(const double *b, int64_t nb, int64_t dim, std::vector<double> &mean, std::vector<double> &axes) {
-    const int64_t stride = std::max<int64_t>(1, nb / 4096);
+    const int64_t stride = std::max<int64_t>(1, nb / 1024);
     mean.assign(size_t(dim), 0.0);
     int64_t ns = 0;
     for (int64_t i = 0; i < nb; i += stride, ++ns)

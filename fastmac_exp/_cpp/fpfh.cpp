@@ -695,6 +695,53 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
     return out;
 }
 
+namespace {
+
+// numpy's pairwise summation (DOUBLE_pairwise_sum: eight running sums up to 128 terms, halves above),
+// term for term, so that a norm equals np.linalg.norm's (the build has no FMA contraction).
+double numpy_pairwise_sum(const double *a, int64_t n) {
+    if (n < 8) {
+        double res = -0.0;
+        for (int64_t i = 0; i < n; ++i) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        double r[8];
+        for (int j = 0; j < 8; ++j) r[j] = a[j];
+        int64_t i = 8;
+        for (; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; ++j) r[j] += a[i + j];
+        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; ++i) res += a[i];
+        return res;
+    }
+    int64_t half = n / 2;
+    half -= half % 8;
+    return numpy_pairwise_sum(a, half) + numpy_pairwise_sum(a + half, n - half);
+}
+
+}  // namespace
+
+void unit_rows(double *x, int64_t rows, int64_t dim, int nthreads) {
+    nthreads = resolve_threads(nthreads, rows);
+    parallel_for(0, rows, nthreads, 512, [&](int64_t r, int) {
+        double *row = x + r * dim;
+        double sq[256];
+        double s2 = 0.0;
+        if (dim <= 256) {
+            for (int64_t j = 0; j < dim; ++j) sq[j] = row[j] * row[j];
+            s2 = numpy_pairwise_sum(sq, dim);
+        } else {
+            std::vector<double> big(static_cast<size_t>(dim));
+            for (int64_t j = 0; j < dim; ++j) big[size_t(j)] = row[j] * row[j];
+            s2 = numpy_pairwise_sum(big.data(), dim);
+        }
+        const double norm = std::sqrt(s2);
+        if (norm > 0)
+            for (int64_t j = 0; j < dim; ++j) row[j] /= norm;
+    });
+}
+
 std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double normal_radius, int64_t normal_max_nn,
                                   double feature_radius, int64_t feature_max_nn, const double *viewpoint,
                                   const int64_t *rows, int64_t nrows, std::vector<double> &normals, int nthreads) {

@@ -78,6 +78,10 @@ std::vector<double> describe_fpfh(const double *keypoints, int64_t n, double nor
                                   double feature_radius, int64_t feature_max_nn, const double *viewpoint,
                                   const int64_t *rows, int64_t nrows, std::vector<double> &normals, int nthreads);
 
+// Each row of x (rows x dim) divided by its Euclidean norm (rows of norm 0 left as they are), bit for bit as
+// numpy's `x / np.linalg.norm(x, axis=1, keepdims=True)` (its pairwise sum of the squares), on the threads.
+void unit_rows(double *x, int64_t rows, int64_t dim, int nthreads);
+
 // Exact nearest rows in feature space, fast (feature_match.cpp): for every row of a (na x dim) the index of
 // the nearest row of b (nb x dim), equal to nearest_rows' (the same float64 arithmetic decides, ties to the
 // lowest index), and the squared distance to the runner-up in float64 (inf when nb < 2). Float32 products

@@ -44,6 +44,8 @@ def core_fpfh(
     from fastmac_exp import core
 
     viewpoint = np.zeros(3) if orient_normals == "origin" else None
+    if rows is not None and np.array_equal(rows, np.arange(len(keypoints))):
+        rows = None  # every row: the core then needs no pass over the rows' neighbourhoods
     _, f = core.core().fpfh_describe(
         np.ascontiguousarray(keypoints, dtype=np.float64),
         normal_radius_factor * voxel,
@@ -52,10 +54,8 @@ def core_fpfh(
         int(feature_max_nn),
         viewpoint,
         None if rows is None else np.ascontiguousarray(rows, dtype=np.int64),
+        normalize=normalize,  # unit rows, bit for bit as np.linalg.norm gives them
     )
-    if normalize:
-        norm = np.linalg.norm(f, axis=1, keepdims=True)
-        f /= np.where(norm > 0, norm, 1.0)
     return f
 
 
