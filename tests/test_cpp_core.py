@@ -168,8 +168,8 @@ def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
 
 
 def test_mac_products_run_in_float32_in_large_cores_only(monkeypatch):
-    """MAC's products (G, the clustering coefficients' sums) stay float64 in cores under 512 nodes and
-    run in float32 in larger ones (the near-cliques FastMAC keeps at 50,000, where the product is MAC's
+    """MAC's products (G, the clustering coefficients' sums) stay float64 in cores under
+    core.mac_reduced_core (320) nodes and run in float32 in larger ones (the near-cliques FastMAC keeps at 50,000, where the product is MAC's
     whole cost; the reference computes G in float32, spec 2.3): G within float32's rounding of dense
     numpy, and MAC's pose that of the float64 products."""
     src, tgt, r, t = clustered(2400, 0.5, 0.004, 11)
@@ -182,7 +182,7 @@ def test_mac_products_run_in_float32_in_large_cores_only(monkeypatch):
         monkeypatch.setenv("FASTMAC_MAC_PRECISION", mode)
         out[mode] = core.graph_edges(src, tgt, *gp)
         res[mode] = core.mac(src, tgt, *gp, 0.1)
-    assert out["single"]["dense_core"] >= 512, out["single"]["dense_core"]
+    assert out["single"]["dense_core"] >= core.mac_reduced_core, out["single"]["dense_core"]
     np.testing.assert_allclose(out["double"]["g"], g, rtol=1e-12)
     np.testing.assert_allclose(out["single"]["g"], g, rtol=2e-6)
     pos = g > 0
@@ -192,12 +192,30 @@ def test_mac_products_run_in_float32_in_large_cores_only(monkeypatch):
     assert rot < 1e-3 and np.linalg.norm(res["single"]["pose"][:3, 3] - res["double"]["pose"][:3, 3]) < 1e-4
     assert rotation_error_deg(res["single"]["pose"][:3, :3], r) < 2.0
     # a smaller core keeps float64: the same G as with the switch
-    src, tgt, _, _ = clustered(900, 0.35, 0.004, 0)
+    assert core.mac_reduced_core == 320
+    src, tgt, _, _ = clustered(700, 0.35, 0.004, 0)
     monkeypatch.setenv("FASTMAC_MAC_PRECISION", "auto")
     small = core.graph_edges(src, tgt, *gp)
     monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")
-    assert 128 <= small["dense_core"] < 512
+    assert 128 <= small["dense_core"] < core.mac_reduced_core, small["dense_core"]
     np.testing.assert_array_equal(small["g"], core.graph_edges(src, tgt, *gp)["g"])
+    # a core of 320-511 nodes (the ~450 of the 500 that samples=auto keeps of a dense KITTI pair) does not
+    src, tgt, r, _ = clustered(1000, 0.42, 0.004, 0)
+    w = dense_w(src, tgt, *gp)
+    i, j = np.nonzero(np.triu(w, 1))
+    g = (w * (w @ w))[i, j]
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "auto")
+    mid, mid_pose = core.graph_edges(src, tgt, *gp), core.mac(src, tgt, *gp, 0.1)["pose"]
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")
+    exact, exact_pose = core.graph_edges(src, tgt, *gp), core.mac(src, tgt, *gp, 0.1)["pose"]
+    assert core.mac_reduced_core <= mid["dense_core"] < 512, mid["dense_core"]
+    pos = g > 0
+    gap = np.abs(mid["g"][pos] / g[pos] - 1)
+    assert np.abs(exact["g"][pos] / g[pos] - 1).max() < 1e-12
+    assert 1e-12 < gap.max() < 1e-3 and np.median(gap) < 1e-4, (gap.max(), np.median(gap))
+    assert rotation_error_deg(mid_pose[:3, :3], exact_pose[:3, :3]) < 1e-3
+    assert np.linalg.norm(mid_pose[:3, 3] - exact_pose[:3, 3]) < 1e-4
+    assert rotation_error_deg(mid_pose[:3, :3], r) < 2.0
 
 
 @pytest.mark.parametrize("n,ratio", [(600, 0.42), (1100, 0.3), (1500, 0.27)])
@@ -211,6 +229,7 @@ def test_packed_products_at_tile_edges_and_thread_counts(monkeypatch, n, ratio):
     w = dense_w(src, tgt, *gp)
     i, j = np.nonzero(np.triu(w, 1))
     g = (w * (w @ w))[i, j]
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")  # float64 tiles in MAC's graph (cores of 320+ reduce)
     for kernel in ("generic", "avx2", "avx512"):
         monkeypatch.setenv("FASTMAC_GEMM", kernel)  # a kernel the CPU lacks falls back to one it has
         out = {t: core.graph_edges(src, tgt, *gp, num_threads=t) for t in (1, 2, 3)}
@@ -699,7 +718,7 @@ def test_the_cores_default_budgets_are_the_configs():
 
 
 def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
-    """Cores of >= 512 nodes (the 1,000 FastMAC@20 keeps of a dense KITTI pair, the near-cliques
+    """Cores of >= core.mac_reduced_core nodes (the 1,000 FastMAC@20 keeps of a dense KITTI pair, the near-cliques
     samples=5000 keeps of 200,000 correspondences) run MAC's products from bfloat16 operands with float32
     sums where the CPU has AVX512_BF16: G within bfloat16's rounding of dense numpy (each term's two
     factors rounded stochastically to 8 significant bits, so that the errors average out over the ~1,000
@@ -714,7 +733,7 @@ def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
         monkeypatch.setenv("FASTMAC_MAC_PRECISION", mode)
         out[mode] = core.graph_edges(src, tgt, *gp)
         res[mode] = core.mac(src, tgt, *gp, 0.1)
-    assert out["auto"]["dense_core"] >= 512, out["auto"]["dense_core"]
+    assert out["auto"]["dense_core"] >= core.mac_reduced_core, out["auto"]["dense_core"]
     pos = g > 0
     gap = {m: np.abs(out[m]["g"][pos] / g[pos] - 1) for m in out}
     assert gap["double"].max() < 1e-12 and 1e-12 < gap["single"].max() < 2e-6

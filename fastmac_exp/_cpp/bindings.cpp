@@ -696,7 +696,8 @@ NB_MODULE(_mac_core, m) {
     });
 
     m.def("bf16_cores", &fastmac::bf16_cores,
-          "Whether MAC's dense cores of >= 512 nodes run in bfloat16 here (the build and the CPU have AVX512_BF16).");
+          "Whether MAC's dense cores of >= mac_reduced_core nodes run in bfloat16 here (the build and the CPU have "
+          "AVX512_BF16).");
     m.def("graph_edges", &graph_edges, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
           "num_threads"_a = 0,
           "Upper-triangle edges (i < j) of W with their weights w and second-order weights g = G_ij.");
@@ -788,7 +789,8 @@ NB_MODULE(_mac_core, m) {
     m.def("default_threads", []() { return fastmac::resolve_threads(0); },
           "Threads used when num_threads=0 (problems with fewer than serial_below rows run on one).");
     m.attr("serial_below") = fastmac::kSerialBelow;
-    m.attr("default_enumerate_budget") = fastmac::kEnumerateBudget;  // params.DEFAULT_ENUMERATE_BUDGET
+    m.attr("default_enumerate_budget") = fastmac::kEnumerateBudget;
+    m.attr("mac_reduced_core") = fastmac::kSingleCore;  // MAC's cores from this many nodes: float32 or bfloat16  // params.DEFAULT_ENUMERATE_BUDGET
 #ifdef FASTMAC_OPENMP
     m.attr("parallel_backend") = "openmp";
 #else

@@ -104,9 +104,12 @@ Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float
 //   Mac:    MAC's graphs (G and the clustering coefficients' sums): float64, except float32 in cores of
 //           at least kSingleCore nodes, where the product's m^3/2 multiply-adds are most of MAC's cost (the
 //           1,000 FastMAC@20 keeps of a dense KITTI pair: a core of ~900; the near-cliques it keeps at
-//           50,000: ~2,500), and the reference computes G in float32 too (spec 2.3). Small graphs (the
-//           C++/Python parity tests, up to 300 correspondences) stay float64. FASTMAC_MAC_PRECISION=double
-//           keeps float64 everywhere.
+//           50,000: ~2,500; the 500 that samples=auto keeps of a dense KITTI pair: ~450), and the
+//           reference computes G in float32 too (spec 2.3). Small graphs (the C++/Python parity tests, up
+//           to 300 correspondences, so no core of kSingleCore) stay float64. FASTMAC_MAC_PRECISION=double
+//           keeps float64 everywhere. (From 512 nodes until 2026-12-07: from 320, register()'s
+//           samples=auto on KITTI 95->94 took 9.8 -> 8.3 ms, its MAC 4.3 -> 2.9, with the same poses,
+//           trust and confidences on all 13 real pairs at samples=auto, 250 and 500.)
 //           On CPUs with AVX512_BF16 those cores' operands are rounded (stochastically) to bfloat16 and
 //           summed in float32 instead: twice the multiply-adds a second, G within ~3e-5 relative (median;
 //           unbiased). The near-clique of 5,000 that samples=5000 keeps of 200,000 correspondences spends
@@ -114,8 +117,8 @@ Csr length_graph(const float *src, const float *tgt, int64_t n, float tau, float
 //           kept of KITTI 95->94: 38 -> 29 ms of one core with the fast cube root (mac.cpp).
 //           FASTMAC_MAC_PRECISION=single stops at float32.
 enum class Precision { Double, Single, Mac };
-constexpr int64_t kSingleCore = 512;
-constexpr int64_t kHalfCore = 512;
+constexpr int64_t kSingleCore = 320;  // > 300: the parity tests' graphs stay float64
+constexpr int64_t kHalfCore = 320;
 
 // G_ij = W_ij * sum_{k != i, j} W_ik W_kj for every stored entry of W (same positions as W.col).
 std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size = nullptr,
