@@ -169,9 +169,9 @@ def test_dense_core_products_equal_dense_numpy(monkeypatch, seed):
 
 def test_mac_products_run_in_float32_in_large_cores_only(monkeypatch):
     """MAC's products (G, the clustering coefficients' sums) stay float64 in cores under
-    core.mac_reduced_core (320) nodes and run in float32 in larger ones (the near-cliques FastMAC keeps at 50,000, where the product is MAC's
-    whole cost; the reference computes G in float32, spec 2.3): G within float32's rounding of dense
-    numpy, and MAC's pose that of the float64 products."""
+    core.mac_reduced_core (320) nodes and run in float32 in larger ones (the near-cliques FastMAC keeps
+    at 50,000, where the product is MAC's whole cost; the reference computes G in float32, spec 2.3): G
+    within float32's rounding of dense numpy, and MAC's pose that of the float64 products."""
     src, tgt, r, t = clustered(2400, 0.5, 0.004, 11)
     gp = ("quadratic", 0.06, 0.1, 0.8)
     w = dense_w(src, tgt, *gp)
@@ -229,7 +229,7 @@ def test_packed_products_at_tile_edges_and_thread_counts(monkeypatch, n, ratio):
     w = dense_w(src, tgt, *gp)
     i, j = np.nonzero(np.triu(w, 1))
     g = (w * (w @ w))[i, j]
-    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")  # float64 tiles in MAC's graph (cores of 320+ reduce)
+    monkeypatch.setenv("FASTMAC_MAC_PRECISION", "double")  # the float64 tiles (cores of 320+ would reduce)
     for kernel in ("generic", "avx2", "avx512"):
         monkeypatch.setenv("FASTMAC_GEMM", kernel)  # a kernel the CPU lacks falls back to one it has
         out = {t: core.graph_edges(src, tgt, *gp, num_threads=t) for t in (1, 2, 3)}
@@ -718,11 +718,11 @@ def test_the_cores_default_budgets_are_the_configs():
 
 
 def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
-    """Cores of >= core.mac_reduced_core nodes (the 1,000 FastMAC@20 keeps of a dense KITTI pair, the near-cliques
-    samples=5000 keeps of 200,000 correspondences) run MAC's products from bfloat16 operands with float32
-    sums where the CPU has AVX512_BF16: G within bfloat16's rounding of dense numpy (each term's two
-    factors rounded stochastically to 8 significant bits, so that the errors average out over the ~1,000
-    terms of a sum), and MAC's pose that of the float64 products."""
+    """Cores of >= core.mac_reduced_core nodes (the 1,000 FastMAC@20 keeps of a dense KITTI pair, the
+    near-cliques samples=5000 keeps of 200,000 correspondences) run MAC's products from bfloat16 operands
+    with float32 sums where the CPU has AVX512_BF16: G within bfloat16's rounding of dense numpy (each
+    term's two factors rounded stochastically to 8 significant bits, so that the errors average out over
+    the ~1,000 terms of a sum), and MAC's pose that of the float64 products."""
     src, tgt, r, t = clustered(2400, 0.5, 0.004, 5)
     gp = ("quadratic", 0.06, 0.1, 0.8)
     w = dense_w(src, tgt, *gp)
