@@ -141,11 +141,18 @@ struct Core {
 };
 
 // The nodes by decreasing degree (ties: by index); the core, when there is one, is a prefix of it.
+// A counting sort (degrees are below n): the stable sort's order in O(n), not O(n log n) (~2 % of the
+// sampler graph's time on a fragment's 3,955 nodes, on one thread).
 std::vector<int32_t> degree_order(const Csr &V) {
-    std::vector<int32_t> order(V.n);
-    std::iota(order.begin(), order.end(), 0);
-    auto deg = [&](int32_t i) { return V.ptr[i + 1] - V.ptr[i]; };
-    std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) { return deg(a) > deg(b); });
+    const int64_t n = V.n;
+    auto deg = [&](int64_t i) { return V.ptr[i + 1] - V.ptr[i]; };
+    int64_t dmax = 0;
+    for (int64_t i = 0; i < n; ++i) dmax = std::max(dmax, deg(i));
+    std::vector<int64_t> start(size_t(dmax) + 2, 0);  // by decreasing degree: bucket dmax - d
+    for (int64_t i = 0; i < n; ++i) ++start[size_t(dmax - deg(i)) + 1];
+    for (size_t b = 1; b < start.size(); ++b) start[b] += start[b - 1];
+    std::vector<int32_t> order(static_cast<size_t>(n));
+    for (int64_t i = 0; i < n; ++i) order[size_t(start[size_t(dmax - deg(i))]++)] = (int32_t)i;
     return order;
 }
 
