@@ -32,7 +32,14 @@ class Pool {
             std::lock_guard<std::mutex> lock(mu_);
             const size_t want = (size_t)std::min(nthreads - 1, 255);
             const uint64_t before = generation_;  // new workers start out looking for the next region
-            while (threads_.size() < want) threads_.emplace_back([this, before] { worker(before); });
+            if (threads_.size() < want) {
+                // Created with the interrupts blocked, so that a new worker never holds them open, not even
+                // until it first runs (on a loaded machine that can be long): a signal meanwhile waits here.
+                sigset_t old;
+                pthread_sigmask(SIG_BLOCK, &interrupt_signals(), &old);
+                while (threads_.size() < want) threads_.emplace_back([this, before] { worker(before); });
+                pthread_sigmask(SIG_SETMASK, &old, nullptr);
+            }
             fn_ = fn;
             ctx_ = ctx;
             slots_ = (int)want;
@@ -64,14 +71,21 @@ class Pool {
     }
 
    private:
+    // A process-directed Ctrl-C or SIGTERM is for Python's main thread: a worker that took it would leave
+    // the main thread asleep in whatever it waits on (a read, a lock) with the signal gone.
+    static const sigset_t &interrupt_signals() {
+        static const sigset_t set = [] {
+            sigset_t s;
+            sigemptyset(&s);
+            for (int sig : {SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGALRM, SIGUSR1, SIGUSR2, SIGCHLD, SIGWINCH})
+                sigaddset(&s, sig);
+            return s;
+        }();
+        return set;
+    }
+
     void worker(uint64_t seen) {
-        // A process-directed Ctrl-C or SIGTERM is for Python's main thread: a worker that took it would
-        // leave the main thread asleep in whatever it waits on (a read, a lock) with the signal gone.
-        sigset_t interrupts;
-        sigemptyset(&interrupts);
-        for (int sig : {SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGALRM, SIGUSR1, SIGUSR2, SIGCHLD, SIGWINCH})
-            sigaddset(&interrupts, sig);
-        pthread_sigmask(SIG_BLOCK, &interrupts, nullptr);
+        pthread_sigmask(SIG_BLOCK, &interrupt_signals(), nullptr);  // (inherited blocked already: run())
         std::unique_lock<std::mutex> lock(mu_);
         for (;;) {
             work_cv_.wait(lock, [&] { return generation_ != seen; });
