@@ -697,27 +697,28 @@ std::vector<double> fpfh_features(const double *points, const double *normals, i
 
 namespace {
 
-// numpy's pairwise summation (DOUBLE_pairwise_sum: eight running sums up to 128 terms, halves above),
-// term for term, so that a norm equals np.linalg.norm's (the build has no FMA contraction).
-double numpy_pairwise_sum(const double *a, int64_t n) {
+// numpy's pairwise summation (DOUBLE_pairwise_sum: eight running sums up to 128 terms, halves above) of
+// the squares a[i] * a[i], term for term, so that a norm equals np.linalg.norm's (the build has no FMA
+// contraction, so each square is rounded before it is added, as numpy's x * x is).
+double numpy_sum_of_squares(const double *a, int64_t n) {
     if (n < 8) {
         double res = -0.0;
-        for (int64_t i = 0; i < n; ++i) res += a[i];
+        for (int64_t i = 0; i < n; ++i) res += a[i] * a[i];
         return res;
     }
     if (n <= 128) {
         double r[8];
-        for (int j = 0; j < 8; ++j) r[j] = a[j];
+        for (int j = 0; j < 8; ++j) r[j] = a[j] * a[j];
         int64_t i = 8;
         for (; i < n - (n % 8); i += 8)
-            for (int j = 0; j < 8; ++j) r[j] += a[i + j];
+            for (int j = 0; j < 8; ++j) r[j] += a[i + j] * a[i + j];
         double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for (; i < n; ++i) res += a[i];
+        for (; i < n; ++i) res += a[i] * a[i];
         return res;
     }
     int64_t half = n / 2;
     half -= half % 8;
-    return numpy_pairwise_sum(a, half) + numpy_pairwise_sum(a + half, n - half);
+    return numpy_sum_of_squares(a, half) + numpy_sum_of_squares(a + half, n - half);
 }
 
 }  // namespace
@@ -726,17 +727,7 @@ void unit_rows(double *x, int64_t rows, int64_t dim, int nthreads) {
     nthreads = resolve_threads(nthreads, rows);
     parallel_for(0, rows, nthreads, 512, [&](int64_t r, int) {
         double *row = x + r * dim;
-        double sq[256];
-        double s2 = 0.0;
-        if (dim <= 256) {
-            for (int64_t j = 0; j < dim; ++j) sq[j] = row[j] * row[j];
-            s2 = numpy_pairwise_sum(sq, dim);
-        } else {
-            std::vector<double> big(static_cast<size_t>(dim));
-            for (int64_t j = 0; j < dim; ++j) big[size_t(j)] = row[j] * row[j];
-            s2 = numpy_pairwise_sum(big.data(), dim);
-        }
-        const double norm = std::sqrt(s2);
+        const double norm = std::sqrt(numpy_sum_of_squares(row, dim));
         if (norm > 0)
             for (int64_t j = 0; j < dim; ++j) row[j] /= norm;
     });
