@@ -42,15 +42,23 @@ def reference_estimate(w: np.ndarray, a: np.ndarray, inv_q: np.ndarray):
     return s, s * s - t, s + t / s, n
 
 
-def test_anchor_signals_follow_the_formulas():
+QUADRATIC = GraphParams(kernel="quadratic", alpha=0.06, tau=0.1, threshold=0.9)
+
+
+@pytest.mark.parametrize("gp", [GP, QUADRATIC], ids=["gaussian", "quadratic"])
+def test_anchor_signals_follow_the_formulas(gp):
+    """Rows with many compatible anchors take the vectorised pair sums, the others the scalar ones; the
+    quadratic kernel its AVX-512 row where the CPU has it: every row against the formulas."""
     corr, _ = make_correspondences(n=150, inlier_ratio=0.4, noise=0.003, seed=3)
-    w = dense_w(corr, GP)
+    w = dense_w(corr, gp)
+    k = (w > 0).sum(1)
+    assert k.max() >= 40 // 16 and k.min() < 40 // 16  # both kinds of row
     rng = np.random.default_rng(0)
     q = rng.uniform(0.2, 1.0, len(w))
     q /= q.sum()
     a = rng.choice(len(w), size=40, p=q)  # with repeats: duplicate draws must not pair with themselves
     assert len(np.unique(a)) < len(a)
-    sig = core.anchor_signals(corr.src, corr.tgt, GP, a, 1.0 / q[a])
+    sig = core.anchor_signals(corr.src, corr.tgt, gp, a, 1.0 / q[a])
     s, f, low, _ = reference_estimate(w, a, 1.0 / q[a])
     # the core computes W in float: compare at float precision of the weights
     np.testing.assert_allclose(sig.degree, s, rtol=1e-5)
@@ -96,6 +104,46 @@ def test_estimate_does_not_depend_on_threads():
         core.anchor_degree(corr.src, corr.tgt, GP, a, num_threads=1),
         core.anchor_degree(corr.src, corr.tgt, GP, a, num_threads=3),
     )
+
+
+_PORTABLE_CHILD = """
+import sys, numpy as np
+from fastmac_exp import core
+from fastmac_exp.params import GraphParams
+from tests.conftest import make_correspondences
+gp = GraphParams(kernel="quadratic", alpha=0.06, tau=0.1, threshold=0.9)
+corr, _ = make_correspondences(n=1500, inlier_ratio=0.3, noise=0.003, seed=5)
+rng = np.random.default_rng(6)
+a = rng.choice(len(corr), size=203)  # not a multiple of 16, with repeats and rows drawn as their own anchor
+inv_q = rng.uniform(100.0, 3000.0, len(a))
+sig = core.anchor_signals(corr.src, corr.tgt, gp, a, inv_q)
+deg = core.anchor_degree(corr.src, corr.tgt, gp, a)
+m = [core.anchors_within(corr.src, corr.tgt, gp, a, 32, b) for b in (1e4, 1e5, 1e6)]
+np.savez(sys.argv[1], degree=sig.degree, highpass=sig.highpass, lowpass=sig.lowpass, pilot=deg, m=m)
+"""
+
+
+def test_the_vector_paths_give_the_portable_loops_bits(tmp_path):
+    """The quadratic kernel's AVX-512 rows (fused distances and sums, compressed rows) against the portable
+    loops (FASTMAC_ANCHORS=generic, read once a process): the same bits. On a CPU without AVX-512 both runs
+    take the portable loops."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = {}
+    for mode in ("auto", "generic"):
+        env = {k: v for k, v in os.environ.items() if k != "FASTMAC_ANCHORS"}
+        if mode == "generic":
+            env["FASTMAC_ANCHORS"] = "generic"
+        path = tmp_path / f"{mode}.npz"
+        subprocess.run([sys.executable, "-c", _PORTABLE_CHILD, str(path)], check=True, cwd=repo, env=env)
+        out[mode] = dict(np.load(path))
+    for key, value in out["auto"].items():
+        np.testing.assert_array_equal(value, out["generic"][key], err_msg=key)
+    assert out["auto"]["pilot"].max() > 0 and np.isfinite(out["auto"]["highpass"]).all()
 
 
 def test_anchor_degree_counts_weights_to_the_anchors():

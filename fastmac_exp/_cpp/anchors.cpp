@@ -14,8 +14,13 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstring>
 #include <stdexcept>
 #include <vector>
+
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#endif
 
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -88,22 +93,144 @@ void anchor_distances(const double *src, const double *tgt, int64_t i, const Anc
     }
 }
 
-// W_{i a_r} for every anchor r in [r0, r1) with a nonzero weight (a_r != i). Appends (r, w) to cols/vals in
-// increasing r; returns how many. Weights only for the anchors within the edge distance.
+#if defined(__GNUC__) && defined(__x86_64__)
+// anchor_row's quadratic kernel on AVX-512: the distances (anchor_distances' operations), the weights and
+// the test of each lane, then the kept lanes compressed in registers and stored whole (cc and vv need 16
+// slots past the count): the same entries in the same order as the portable loop.
+__attribute__((target("avx512f"))) size_t quadratic_row_avx512(const double *src, const double *tgt, int64_t i,
+                                                              const AnchorSet &A, int32_t *cc, double *vv,
+                                                              int64_t r0, int64_t r1) {
+    const double *p = src + 3 * i, *q = tgt + 3 * i;
+    const __m512 pxi = _mm512_set1_ps((float)(p[0] - A.cp[0])), pyi = _mm512_set1_ps((float)(p[1] - A.cp[1])),
+                 pzi = _mm512_set1_ps((float)(p[2] - A.cp[2]));
+    const __m512 qxi = _mm512_set1_ps((float)(q[0] - A.cq[0])), qyi = _mm512_set1_ps((float)(q[1] - A.cq[1])),
+                 qzi = _mm512_set1_ps((float)(q[2] - A.cq[2]));
+    const __m512 one = _mm512_set1_ps(1.f), inv_t2 = _mm512_set1_ps(A.inv_t2), thr = _mm512_set1_ps(A.threshold);
+    const __m512 lim = _mm512_set1_ps(A.max_d);
+    const __m512i self = _mm512_set1_epi64(i);
+    const __m512i iota = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const int64_t *idx = A.idx.data();
+    size_t k = 0;
+    for (int64_t r = r0; r < r1; r += 16) {
+        const __mmask16 lanes = r1 - r >= 16 ? __mmask16(0xffff) : __mmask16((1u << (r1 - r)) - 1u);
+        const __m512 dx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.px.data() + r), pxi);
+        const __m512 dy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.py.data() + r), pyi);
+        const __m512 dz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.pz.data() + r), pzi);
+        const __m512 ex = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qx.data() + r), qxi);
+        const __m512 ey = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qy.data() + r), qyi);
+        const __m512 ez = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qz.data() + r), qzi);
+        const __m512 sp = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)), _mm512_mul_ps(dz, dz)));
+        const __m512 sq = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ex, ex), _mm512_mul_ps(ey, ey)), _mm512_mul_ps(ez, ez)));
+        const __m512 d = _mm512_abs_ps(_mm512_sub_ps(sp, sq));
+        const __m512 w = _mm512_sub_ps(one, _mm512_mul_ps(_mm512_mul_ps(d, d), inv_t2));
+        const __mmask8 lo = __mmask8(lanes), hi = __mmask8(lanes >> 8);
+        const __mmask16 other =
+            __mmask16(_mm512_mask_cmpneq_epi64_mask(lo, _mm512_maskz_loadu_epi64(lo, idx + r), self)) |
+            __mmask16(__mmask16(_mm512_mask_cmpneq_epi64_mask(hi, _mm512_maskz_loadu_epi64(hi, idx + r + 8), self))
+                      << 8);
+        const __mmask16 keep = _mm512_mask_cmp_ps_mask(
+            _mm512_mask_cmp_ps_mask(other, d, lim, _CMP_LE_OQ), w, thr, _CMP_GE_OQ);
+        if (!keep) continue;
+        const __m512i cols = _mm512_add_epi32(_mm512_set1_epi32(int32_t(r)), iota);
+        _mm512_storeu_si512(cc + k, _mm512_maskz_compress_epi32(keep, cols));
+        const __mmask8 klo = __mmask8(keep), khi = __mmask8(keep >> 8);
+        const size_t nlo = size_t(__builtin_popcount(unsigned(klo)));
+        _mm512_storeu_pd(vv + k, _mm512_maskz_compress_pd(klo, _mm512_cvtps_pd(_mm512_castps512_ps256(w))));
+        _mm512_storeu_pd(vv + k + nlo,
+                         _mm512_maskz_compress_pd(khi, _mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(
+                                                           _mm512_castps_pd(w), 1)))));
+        k += nlo + size_t(__builtin_popcount(unsigned(khi)));
+    }
+    return k;
+}
+#endif
+
+// W_{i a_r} for every anchor r in [r0, r1) with a nonzero weight (a_r != i), in increasing r, into the first
+// entries of cols/vals (which keep at least r1 - r0 slots); returns how many. Weights only for the anchors
+// within the edge distance. Branch-free for the quadratic kernel (the Gaussian's exp only for the anchors
+// within the edge distance).
 size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
                   std::vector<int32_t> &cols, std::vector<double> &vals, int64_t r0 = 0, int64_t r1 = -1) {
     const int64_t m = r1 < 0 ? A.m : r1;
+    // 16 slots past the most entries, for the vector path's whole stores
+    if (cols.size() < size_t(m - r0 + 16)) cols.resize(size_t(m - r0 + 16)), vals.resize(size_t(m - r0 + 16));
+    int32_t *cc = cols.data();
+    double *vv = vals.data();
+#if defined(__GNUC__) && defined(__x86_64__)
+    static const bool wide = __builtin_cpu_supports("avx512f") && !env_is("FASTMAC_ANCHORS", "generic");
+    if (wide && !A.gaussian) return quadratic_row_avx512(src, tgt, i, A, cc, vv, r0, m);
+#endif
     anchor_distances(src, tgt, i, A, dist, r0, m);
     const float *dd = dist.data();
-    cols.clear(), vals.clear();
-    const float lim = A.max_d;
-    for (int64_t r = r0; r < m; ++r) {
-        if (dd[r] > lim || A.idx[r] == i) continue;
-        const float w = weight_of(dd[r], A);
-        if (w >= A.threshold) cols.push_back((int32_t)r), vals.push_back((double)w);
+    const int64_t *idx = A.idx.data();
+    const float lim = A.max_d, thr = A.threshold;
+    size_t k = 0;
+    if (!A.gaussian) {
+        const float inv_t2 = A.inv_t2;
+        for (int64_t r = r0; r < m; ++r) {
+            const float w = 1.f - dd[r] * dd[r] * inv_t2;  // weight_of's quadratic kernel
+            cc[k] = int32_t(r);
+            vv[k] = double(w);
+            k += (dd[r] <= lim) & (w >= thr) & (idx[r] != i);
+        }
+        return k;
     }
-    return cols.size();
+    for (int64_t r = r0; r < m; ++r) {
+        if (dd[r] > lim || idx[r] == i) continue;
+        const float w = weight_of(dd[r], A);
+        if (w >= thr) cc[k] = int32_t(r), vv[k] = double(w), ++k;
+    }
+    return k;
 }
+
+#if defined(__GNUC__) && defined(__x86_64__)
+// anchor_sum's quadratic kernel in one pass on AVX-512: the distances (anchor_distances' operations, into
+// dd) and the 16 lane sums and counts together, lane l taking the anchors r0 + l, r0 + 16 + l, ..., then the
+// lanes added in order: the same bits as the portable loops.
+__attribute__((target("avx512f"))) float quadratic_sum_avx512(const double *src, const double *tgt, int64_t i,
+                                                             const AnchorSet &A, float *dd, int64_t r0,
+                                                             int64_t r1, int64_t &count) {
+    const double *p = src + 3 * i, *q = tgt + 3 * i;
+    const __m512 pxi = _mm512_set1_ps((float)(p[0] - A.cp[0])), pyi = _mm512_set1_ps((float)(p[1] - A.cp[1])),
+                 pzi = _mm512_set1_ps((float)(p[2] - A.cp[2]));
+    const __m512 qxi = _mm512_set1_ps((float)(q[0] - A.cq[0])), qyi = _mm512_set1_ps((float)(q[1] - A.cq[1])),
+                 qzi = _mm512_set1_ps((float)(q[2] - A.cq[2]));
+    const __m512 one = _mm512_set1_ps(1.f), inv_t2 = _mm512_set1_ps(A.inv_t2), thr = _mm512_set1_ps(A.threshold);
+    const __m512i inc = _mm512_set1_epi32(1);
+    __m512 sum = _mm512_setzero_ps();
+    __m512i cnt = _mm512_setzero_si512();
+    for (int64_t r = r0; r < r1; r += 16) {
+        const __mmask16 lanes = r1 - r >= 16 ? __mmask16(0xffff) : __mmask16((1u << (r1 - r)) - 1u);
+        const __m512 dx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.px.data() + r), pxi);
+        const __m512 dy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.py.data() + r), pyi);
+        const __m512 dz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.pz.data() + r), pzi);
+        const __m512 ex = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qx.data() + r), qxi);
+        const __m512 ey = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qy.data() + r), qyi);
+        const __m512 ez = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qz.data() + r), qzi);
+        const __m512 sp = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)), _mm512_mul_ps(dz, dz)));
+        const __m512 sq = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ex, ex), _mm512_mul_ps(ey, ey)), _mm512_mul_ps(ez, ez)));
+        const __m512 d = _mm512_abs_ps(_mm512_sub_ps(sp, sq));
+        _mm512_mask_storeu_ps(dd + r, lanes, d);
+        const __m512 w = _mm512_sub_ps(one, _mm512_mul_ps(_mm512_mul_ps(d, d), inv_t2));
+        const __mmask16 keep = _mm512_mask_cmp_ps_mask(lanes, w, thr, _CMP_GE_OQ);
+        sum = _mm512_mask_add_ps(sum, keep, sum, w);
+        cnt = _mm512_mask_add_epi32(cnt, keep, cnt, inc);
+    }
+    alignas(64) float ls[16];
+    alignas(64) int32_t lc[16];
+    _mm512_store_ps(ls, sum);
+    _mm512_store_si512(lc, cnt);
+    float total = 0.f;
+    int64_t c = 0;
+    for (int l = 0; l < 16; ++l) total += ls[l], c += lc[l];
+    count = c;
+    return total;
+}
+#endif
 
 // The weight sum and the count of row i's compatible anchors in [r0, r1) (a_r != i), without listing them:
 // the pilot's degree and the budget's counts. Branch-free for the quadratic kernel (it vectorises); the
@@ -113,11 +240,22 @@ __attribute__((target_clones("avx512f", "avx2", "default")))
 #endif
 double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorSet &A, std::vector<float> &dist,
                   int64_t r0, int64_t r1, int64_t &count) {
-    anchor_distances(src, tgt, i, A, dist, r0, r1);
-    const float *dd = dist.data();
     float sum = 0.f;
     int64_t cnt = 0;
-    if (!A.gaussian) {
+    bool fused = false;
+#if defined(__GNUC__) && defined(__x86_64__)
+    static const bool wide = __builtin_cpu_supports("avx512f") && !env_is("FASTMAC_ANCHORS", "generic");
+    if (wide && !A.gaussian) {
+        dist.resize(r1);
+        sum = quadratic_sum_avx512(src, tgt, i, A, dist.data(), r0, r1, cnt);
+        fused = true;
+    }
+#endif
+    if (!fused) anchor_distances(src, tgt, i, A, dist, r0, r1);
+    const float *dd = dist.data();
+    if (fused) {
+        // summed above
+    } else if (!A.gaussian) {
         // 16 partial sums, one per lane, added in a fixed order at the end: the loop vectorises and the
         // sum is the same for every instruction set (a single running sum would not vectorise)
         const float thr = A.threshold, inv_t2 = A.inv_t2;
@@ -175,10 +313,41 @@ double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorS
 struct RowScratch {
     std::vector<float> dist;
     std::vector<int32_t> cols;
-    std::vector<double> vals, u, us;
+    std::vector<double> vals, u, us, v;
 };
 
+constexpr int64_t kPanel = 32;  // doubles of v held in registers while the rows of B stream past
+
+// v = sum_x u[x] B[c[x]][:] over the k rows c of B (row stride `stride`, a multiple of kPanel, padded with
+// 0), panel by panel so that each panel of v stays in registers (GCC's vector types: four vectors of eight
+// doubles, lowered to whatever the clone has). Each element is the same products added in the same order
+// (x increasing, no FMA) in every clone, so each gives the same bits.
+typedef double Panel8 __attribute__((vector_size(64)));
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
+__attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
+void rows_times(const double *B, int64_t stride, const int32_t *c, const double *u, size_t k, double *v) {
+    static_assert(kPanel == 32, "four vectors of eight doubles");
+    for (int64_t p = 0; p < stride; p += kPanel) {
+        Panel8 a0 = {}, a1 = {}, a2 = {}, a3 = {};
+        for (size_t x = 0; x < k; ++x) {
+            const double ux = u[x];
+            const double *b = B + size_t(c[x]) * size_t(stride) + size_t(p);
+            Panel8 b0, b1, b2, b3;
+            std::memcpy(&b0, b, 64), std::memcpy(&b1, b + 8, 64);
+            std::memcpy(&b2, b + 16, 64), std::memcpy(&b3, b + 24, 64);
+            a0 += ux * b0, a1 += ux * b1, a2 += ux * b2, a3 += ux * b3;
+        }
+        std::memcpy(v + p, &a0, 64), std::memcpy(v + p + 8, &a1, 64);
+        std::memcpy(v + p + 16, &a2, 64), std::memcpy(v + p + 24, &a3, 64);
+    }
+}
+
+
 constexpr int64_t kRowChunk = 64;  // rows between two Ctrl-C polls
+// a row takes the vectorised pair sums (rows_times) when its compatible anchors are at least 1 / kDenseShare
+// of all anchors: the k m / 8 vector steps are then fewer cycles than the k^2 / 2 dependent scalar ones
+constexpr int64_t kDenseShare = 16;
 
 // body(i, scratch of the thread, tid) for every row, in chunks, Ctrl-C polled between chunks.
 template <class F>
@@ -267,13 +436,15 @@ Signals anchor_signals(const double *src, const double *tgt, int64_t n, const Gr
     const AnchorSet A = make_anchors(src, tgt, n, anchors, m, gp);
     const int nt = resolve_threads(nthreads, n);
     // B_rt = W_{a_r a_t}, 0 on the diagonal and between two draws of the same node
-    std::vector<double> B((size_t)m * m, 0.0);
+    // (rows padded with 0 to a multiple of kPanel, for rows_times)
+    const int64_t stride = (m + kPanel - 1) / kPanel * kPanel;
+    std::vector<double> B((size_t)m * stride, 0.0);
     {
         RowScratch S;
         for (int64_t r = 0; r < m; ++r) {
-            anchor_row(src, tgt, A.idx[r], A, S.dist, S.cols, S.vals);
-            for (size_t x = 0; x < S.cols.size(); ++x)
-                if (A.idx[S.cols[x]] != A.idx[r]) B[(size_t)r * m + S.cols[x]] = S.vals[x];
+            const size_t k = anchor_row(src, tgt, A.idx[r], A, S.dist, S.cols, S.vals);
+            for (size_t x = 0; x < k; ++x)
+                if (A.idx[S.cols[x]] != A.idx[r]) B[(size_t)r * stride + S.cols[x]] = S.vals[x];
         }
     }
     const double inv_m = 1.0 / (double)m, inv_mm = 1.0 / ((double)m * (double)(m - 1));
@@ -294,10 +465,26 @@ Signals anchor_signals(const double *src, const double *tgt, int64_t n, const Gr
         }
         const double *u = S.u.data(), *us = S.us.data();
         double d = 0.0, T = 0.0, e = 0.0, g = 0.0;
+        if (int64_t(k) * kDenseShare >= m) {
+            // many compatible anchors (a dense graph): v = B u by whole rows of B, vectorised, then
+            // T = u.v = sum over ordered pairs and g = us.v (B is symmetric with a zero diagonal); k m / 8
+            // vector steps instead of k^2 / 2 dependent scalar ones
+            S.v.resize(size_t(stride));
+            double *v = S.v.data();
+            rows_times(B.data(), stride, c, u, k, v);
+            for (size_t x = 0; x < k; ++x) {
+                d += u[x] * w[x];
+                e += us[x] * w[x];
+                T += u[x] * v[c[x]];
+                g += us[x] * v[c[x]];
+            }
+            d *= inv_m;
+            return {1.0 + 3.0 * d + T * inv_mm, d, e * inv_m, g * inv_mm};
+        }
         for (size_t x = 0; x < k; ++x) {
             d += u[x] * w[x];
             e += us[x] * w[x];
-            const double *Brow = B.data() + (size_t)c[x] * m;
+            const double *Brow = B.data() + (size_t)c[x] * stride;
             double Tx = 0.0, Gx = 0.0;
             for (size_t y = x + 1; y < k; ++y) {
                 const double b = Brow[c[y]];

@@ -389,8 +389,9 @@ void weighted_sum(const int32_t *nbr, const double *d2, int64_t m, const double 
     for (int64_t k = 0; k < m; ++k) {
         const double dist = d2[k];
         if (dist == 0.0) continue;
+        const double inv = 1.0 / dist;
         const double *__restrict s = &spfh[size_t(nbr[k]) * 33];
-        for (int j = 0; j < 33; ++j) f[j] += s[j] / dist;
+        for (int j = 0; j < 33; ++j) f[j] += s[j] * inv;
     }
     for (int j = 0; j < 33; ++j) sum[j / 11] += f[j];
 }
