@@ -94,17 +94,42 @@ void anchor_distances(const double *src, const double *tgt, int64_t i, const Anc
 }
 
 #if defined(__GNUC__) && defined(__x86_64__)
+// Row i's point pair, centred as the anchors are, for the AVX-512 rows below: distances() gives 16 lanes of
+// anchor_distances' values (the same operations in the same order).
+struct LaneRow {
+    __m512 px, py, pz, qx, qy, qz;
+    __attribute__((target("avx512f"))) LaneRow(const double *src, const double *tgt, int64_t i, const AnchorSet &A) {
+        const double *p = src + 3 * i, *q = tgt + 3 * i;
+        px = _mm512_set1_ps((float)(p[0] - A.cp[0])), py = _mm512_set1_ps((float)(p[1] - A.cp[1]));
+        pz = _mm512_set1_ps((float)(p[2] - A.cp[2]));
+        qx = _mm512_set1_ps((float)(q[0] - A.cq[0])), qy = _mm512_set1_ps((float)(q[1] - A.cq[1]));
+        qz = _mm512_set1_ps((float)(q[2] - A.cq[2]));
+    }
+    __attribute__((target("avx512f"), always_inline)) inline __m512 distances(const AnchorSet &A, int64_t r,
+                                                                            __mmask16 lanes) const {
+        const __m512 dx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.px.data() + r), px);
+        const __m512 dy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.py.data() + r), py);
+        const __m512 dz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.pz.data() + r), pz);
+        const __m512 ex = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qx.data() + r), qx);
+        const __m512 ey = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qy.data() + r), qy);
+        const __m512 ez = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qz.data() + r), qz);
+        const __m512 sp = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)), _mm512_mul_ps(dz, dz)));
+        const __m512 sq = _mm512_sqrt_ps(
+            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ex, ex), _mm512_mul_ps(ey, ey)), _mm512_mul_ps(ez, ez)));
+        return _mm512_abs_ps(_mm512_sub_ps(sp, sq));
+    }
+};
+#endif
+
+#if defined(__GNUC__) && defined(__x86_64__)
 // anchor_row's quadratic kernel on AVX-512: the distances (anchor_distances' operations), the weights and
 // the test of each lane, then the kept lanes compressed in registers and stored whole (cc and vv need 16
 // slots past the count): the same entries in the same order as the portable loop.
 __attribute__((target("avx512f"))) size_t quadratic_row_avx512(const double *src, const double *tgt, int64_t i,
                                                               const AnchorSet &A, int32_t *cc, double *vv,
                                                               int64_t r0, int64_t r1) {
-    const double *p = src + 3 * i, *q = tgt + 3 * i;
-    const __m512 pxi = _mm512_set1_ps((float)(p[0] - A.cp[0])), pyi = _mm512_set1_ps((float)(p[1] - A.cp[1])),
-                 pzi = _mm512_set1_ps((float)(p[2] - A.cp[2]));
-    const __m512 qxi = _mm512_set1_ps((float)(q[0] - A.cq[0])), qyi = _mm512_set1_ps((float)(q[1] - A.cq[1])),
-                 qzi = _mm512_set1_ps((float)(q[2] - A.cq[2]));
+    const LaneRow row(src, tgt, i, A);
     const __m512 one = _mm512_set1_ps(1.f), inv_t2 = _mm512_set1_ps(A.inv_t2), thr = _mm512_set1_ps(A.threshold);
     const __m512 lim = _mm512_set1_ps(A.max_d);
     const __m512i self = _mm512_set1_epi64(i);
@@ -113,17 +138,7 @@ __attribute__((target("avx512f"))) size_t quadratic_row_avx512(const double *src
     size_t k = 0;
     for (int64_t r = r0; r < r1; r += 16) {
         const __mmask16 lanes = r1 - r >= 16 ? __mmask16(0xffff) : __mmask16((1u << (r1 - r)) - 1u);
-        const __m512 dx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.px.data() + r), pxi);
-        const __m512 dy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.py.data() + r), pyi);
-        const __m512 dz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.pz.data() + r), pzi);
-        const __m512 ex = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qx.data() + r), qxi);
-        const __m512 ey = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qy.data() + r), qyi);
-        const __m512 ez = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qz.data() + r), qzi);
-        const __m512 sp = _mm512_sqrt_ps(
-            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)), _mm512_mul_ps(dz, dz)));
-        const __m512 sq = _mm512_sqrt_ps(
-            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ex, ex), _mm512_mul_ps(ey, ey)), _mm512_mul_ps(ez, ez)));
-        const __m512 d = _mm512_abs_ps(_mm512_sub_ps(sp, sq));
+        const __m512 d = row.distances(A, r, lanes);
         const __m512 w = _mm512_sub_ps(one, _mm512_mul_ps(_mm512_mul_ps(d, d), inv_t2));
         const __mmask8 lo = __mmask8(lanes), hi = __mmask8(lanes >> 8);
         const __mmask16 other =
@@ -192,28 +207,14 @@ size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorS
 __attribute__((target("avx512f"))) float quadratic_sum_avx512(const double *src, const double *tgt, int64_t i,
                                                              const AnchorSet &A, float *dd, int64_t r0,
                                                              int64_t r1, int64_t &count) {
-    const double *p = src + 3 * i, *q = tgt + 3 * i;
-    const __m512 pxi = _mm512_set1_ps((float)(p[0] - A.cp[0])), pyi = _mm512_set1_ps((float)(p[1] - A.cp[1])),
-                 pzi = _mm512_set1_ps((float)(p[2] - A.cp[2]));
-    const __m512 qxi = _mm512_set1_ps((float)(q[0] - A.cq[0])), qyi = _mm512_set1_ps((float)(q[1] - A.cq[1])),
-                 qzi = _mm512_set1_ps((float)(q[2] - A.cq[2]));
+    const LaneRow row(src, tgt, i, A);
     const __m512 one = _mm512_set1_ps(1.f), inv_t2 = _mm512_set1_ps(A.inv_t2), thr = _mm512_set1_ps(A.threshold);
     const __m512i inc = _mm512_set1_epi32(1);
     __m512 sum = _mm512_setzero_ps();
     __m512i cnt = _mm512_setzero_si512();
     for (int64_t r = r0; r < r1; r += 16) {
         const __mmask16 lanes = r1 - r >= 16 ? __mmask16(0xffff) : __mmask16((1u << (r1 - r)) - 1u);
-        const __m512 dx = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.px.data() + r), pxi);
-        const __m512 dy = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.py.data() + r), pyi);
-        const __m512 dz = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.pz.data() + r), pzi);
-        const __m512 ex = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qx.data() + r), qxi);
-        const __m512 ey = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qy.data() + r), qyi);
-        const __m512 ez = _mm512_sub_ps(_mm512_maskz_loadu_ps(lanes, A.qz.data() + r), qzi);
-        const __m512 sp = _mm512_sqrt_ps(
-            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(dx, dx), _mm512_mul_ps(dy, dy)), _mm512_mul_ps(dz, dz)));
-        const __m512 sq = _mm512_sqrt_ps(
-            _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(ex, ex), _mm512_mul_ps(ey, ey)), _mm512_mul_ps(ez, ez)));
-        const __m512 d = _mm512_abs_ps(_mm512_sub_ps(sp, sq));
+        const __m512 d = row.distances(A, r, lanes);
         _mm512_mask_storeu_ps(dd + r, lanes, d);
         const __m512 w = _mm512_sub_ps(one, _mm512_mul_ps(_mm512_mul_ps(d, d), inv_t2));
         const __mmask16 keep = _mm512_mask_cmp_ps_mask(lanes, w, thr, _CMP_GE_OQ);
