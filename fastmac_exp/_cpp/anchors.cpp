@@ -94,6 +94,15 @@ void anchor_distances(const double *src, const double *tgt, int64_t i, const Anc
 }
 
 #if defined(__GNUC__) && defined(__x86_64__)
+// Whether the quadratic kernel's rows take the AVX-512 paths below (read once a process; FASTMAC_ANCHORS=generic
+// forces the portable loops, for tests).
+bool wide_rows() {
+    static const bool wide = __builtin_cpu_supports("avx512f") && !env_is("FASTMAC_ANCHORS", "generic");
+    return wide;
+}
+#endif
+
+#if defined(__GNUC__) && defined(__x86_64__)
 // Row i's point pair, centred as the anchors are, for the AVX-512 rows below: distances() gives 16 lanes of
 // anchor_distances' values (the same operations in the same order).
 struct LaneRow {
@@ -174,7 +183,7 @@ size_t anchor_row(const double *src, const double *tgt, int64_t i, const AnchorS
     int32_t *cc = cols.data();
     double *vv = vals.data();
 #if defined(__GNUC__) && defined(__x86_64__)
-    static const bool wide = __builtin_cpu_supports("avx512f") && !env_is("FASTMAC_ANCHORS", "generic");
+    const bool wide = wide_rows();
     if (wide && !A.gaussian) return quadratic_row_avx512(src, tgt, i, A, cc, vv, r0, m);
 #endif
     anchor_distances(src, tgt, i, A, dist, r0, m);
@@ -245,7 +254,7 @@ double anchor_sum(const double *src, const double *tgt, int64_t i, const AnchorS
     int64_t cnt = 0;
     bool fused = false;
 #if defined(__GNUC__) && defined(__x86_64__)
-    static const bool wide = __builtin_cpu_supports("avx512f") && !env_is("FASTMAC_ANCHORS", "generic");
+    const bool wide = wide_rows();
     if (wide && !A.gaussian) {
         dist.resize(r1);
         sum = quadratic_sum_avx512(src, tgt, i, A, dist.data(), r0, r1, cnt);
