@@ -758,6 +758,36 @@ def test_mac_products_run_in_bfloat16_in_the_largest_cores(monkeypatch):
     np.testing.assert_allclose(core.graph_edges(src, tgt, *gp)["g"][pos], g[pos], rtol=2e-6)
 
 
+@pytest.mark.parametrize("n,ratio", [(1100, 0.42), (2400, 0.5)])
+def test_the_amx_tile_sums_the_same_bfloat16_products(monkeypatch, n, ratio):
+    """Where the CPU has AMX (and Linux grants it), MAC's bfloat16 cores run on it: the same rounded operands
+    as the AVX512_BF16 tile, only summed in the hardware's order, so G agrees with that tile's to float32's
+    rounding of the sums (a misplaced pair or column in the AMX packing would be off by the products
+    themselves), the core sizes are not multiples of its 32 x 32 tile or of its 16 pairs a group, and 1, 2
+    and 3 threads give the same bits."""
+    monkeypatch.setenv("FASTMAC_GEMM", "amx")
+    if core.bf16_kernel() != "amx":
+        pytest.skip("no AMX-BF16 here (CPU or kernel)")
+    monkeypatch.setenv("FASTMAC_GEMM", "avx512")
+    assert core.bf16_kernel() == "avx512_bf16"
+    src, tgt, _, _ = clustered(n, ratio, 0.004, n)
+    gp = ("quadratic", 0.06, 0.1, 0.8)
+    w = dense_w(src, tgt, *gp)
+    i, j = np.nonzero(np.triu(w, 1))
+    g = (w * (w @ w))[i, j]
+    ref = core.graph_edges(src, tgt, *gp)
+    monkeypatch.setenv("FASTMAC_GEMM", "amx")
+    out = {t: core.graph_edges(src, tgt, *gp, num_threads=t) for t in (1, 2, 3)}
+    m = out[1]["dense_core"]
+    assert m >= core.mac_reduced_core and m % 32, m
+    np.testing.assert_array_equal(out[1]["i"], i)
+    pos = g > 0
+    np.testing.assert_allclose(out[1]["g"][pos], ref["g"][pos], rtol=5e-5)
+    assert np.abs(out[1]["g"][pos] / g[pos] - 1).max() < 1e-3  # bfloat16's rounding, as the other tile
+    for t in (2, 3):
+        np.testing.assert_array_equal(out[t]["g"], out[1]["g"])
+
+
 def test_a_small_graph_dense_all_over_is_one_core(monkeypatch):
     """Where a small graph is dense all over (FastMAC@20's 1,000 keeps of a dense outdoor pair: half of all
     pairs linked, outliers included), the cost model runs the product over every node (no gathers, no

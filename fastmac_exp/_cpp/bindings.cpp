@@ -698,6 +698,9 @@ NB_MODULE(_mac_core, m) {
     m.def("bf16_cores", &fastmac::bf16_cores,
           "Whether MAC's dense cores of >= mac_reduced_core nodes run in bfloat16 here (the build and the CPU have "
           "AVX512_BF16).");
+    m.def("bf16_kernel", &fastmac::bf16_kernel,
+          "The tile that runs those cores here: 'amx' (AMX-BF16, where Linux grants the tile state), 'avx512_bf16' "
+          "or '' (none); FASTMAC_GEMM=avx512 takes the AVX512_BF16 tile over AMX.");
     m.def("graph_edges", &graph_edges, "src"_a, "tgt"_a, "kernel"_a, "alpha"_a, "tau"_a, "threshold"_a,
           "num_threads"_a = 0,
           "Upper-triangle edges (i < j) of W with their weights w and second-order weights g = G_ij.");

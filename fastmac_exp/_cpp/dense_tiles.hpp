@@ -32,13 +32,17 @@ struct Kernels {
 // each uint32_t of a and b holds two bfloat16 values, rows 2r (low half, h = 0) and 2r + 1 (high half) of
 // D: the packed micro-panels of the float tile with pairs of rows in place of rows.
 using TileBf16Fn = void (*)(const uint32_t *a, const uint32_t *b, int64_t kc2, float *c, int64_t ldc);
+// kgroup: how a holds its mr columns. 1: [kc2][mr] (the VDPBF16PS tile); 16: [kc2 / 16][mr][16], each column's
+// 16 pairs contiguous (the AMX tile's A operand; kc2 then a multiple of 16).
 struct TileBf16 {
-    TileBf16Fn fn = nullptr;  // nullptr: not built (the compiler lacks AVX512_BF16)
+    TileBf16Fn fn = nullptr;  // nullptr: not built (the compiler lacks AVX512_BF16), or not usable here
     int64_t mr = 0, nr = 0;
+    int64_t kgroup = 1;
 };
 
 Kernels avx512_kernels();  // dense_tiles_avx512.cpp (x86-64 builds only)
 TileBf16 bf16_tile();      // dense_tiles_bf16.cpp (x86-64 builds whose compiler has -mavx512bf16)
+TileBf16 amx_tile();       // dense_tiles_amx.cpp (x86-64 builds whose compiler has -mamx-bf16)
 Kernels avx2_kernels();    // dense_tiles_avx2.cpp
 
 // The tile with MR x NV accumulators of O::L lanes: O provides the vector type V, L and zero / load /

@@ -131,6 +131,8 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
 
 // Whether this build and CPU run MAC's cores of >= kHalfCore nodes in bfloat16 (FASTMAC_GEMM permitting).
 bool bf16_cores();
+// Which tile runs them: "amx", "avx512_bf16" or "" (none; FASTMAC_GEMM=avx512 passes over AMX).
+std::string bf16_kernel();
 
 // masked_square for an unweighted graph (every value 1): S_ij = |N(i) and N(j)|, exactly, by AND + popcount of
 // bitset rows, tiled for the caches (common_neighbours.cpp; AVX-512 VPOPCNTDQ where the CPU has it).

@@ -119,12 +119,20 @@ tiles::Tile<T> pick_tile() {
     else return k.f;
 }
 
-// The bfloat16 tile where the build and the CPU have AVX512_BF16 (fn nullptr otherwise, and with
-// FASTMAC_GEMM set to another kernel).
+// The bfloat16 tile: AMX where the build, the CPU and Linux allow it, else AVX512_BF16 where the build and
+// the CPU have it (fn nullptr otherwise, and with FASTMAC_GEMM set to a kernel other than amx or avx512;
+// FASTMAC_GEMM=avx512 takes the AVX512_BF16 tile on a CPU with AMX).
 tiles::TileBf16 pick_bf16_tile() {
 #ifdef FASTMAC_BF16_TILES
     const char *env = std::getenv("FASTMAC_GEMM");
-    if ((!env || std::string(env) == "avx512") && __builtin_cpu_supports("avx512f") &&
+    const std::string want = env ? env : "";
+#ifdef FASTMAC_AMX_TILES
+    if (want.empty() || want == "amx") {
+        const tiles::TileBf16 amx = tiles::amx_tile();
+        if (amx.fn) return amx;
+    }
+#endif
+    if ((want.empty() || want == "avx512" || want == "amx") && __builtin_cpu_supports("avx512f") &&
         __builtin_cpu_supports("avx512bf16"))
         return tiles::bf16_tile();
 #endif
@@ -430,11 +438,12 @@ void round_row_bf16(const float *x, int64_t len, uint64_t key0, uint16_t *out) {
 }
 
 // One micro-panel row of a bfloat16 packing: entries c0 .. c0 + w of two rounded rows of D interleaved
-// (the even row in the low half of each uint32_t), zeros up to `width`.
+// (the even row in the low half of each uint32_t), zeros up to `width`, `step` apart in dst (1: a row of the
+// panel; 16: a pair of AMX's A operand, whose columns hold 16 pairs each).
 inline void pack_pair(const uint16_t *even, const uint16_t *odd, int64_t c0, int64_t w, int64_t width,
-                      uint32_t *dst) {
-    for (int64_t t = 0; t < w; ++t) dst[t] = (uint32_t)even[c0 + t] | ((uint32_t)odd[c0 + t] << 16);
-    for (int64_t t = w; t < width; ++t) dst[t] = 0;
+                      uint32_t *dst, int64_t step = 1) {
+    for (int64_t t = 0; t < w; ++t) dst[t * step] = (uint32_t)even[c0 + t] | ((uint32_t)odd[c0 + t] << 16);
+    for (int64_t t = w; t < width; ++t) dst[t * step] = 0;
 }
 
 // core_products in bfloat16 with float32 sums: D rounded to bfloat16 (stochastically), packed in pairs of rows (rows 2r
@@ -443,13 +452,19 @@ inline void pack_pair(const uint16_t *even, const uint16_t *odd, int64_t c0, int
 Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, const Core &core,
                                 const tiles::TileBf16 &tile, int64_t ld, int nthreads, InterruptibleRegion &ctrl_c) {
     const int64_t m = core.m, nk = (int64_t)core.rows.size(), nk2 = (nk + 1) / 2;
-    const int64_t mr = tile.mr, nr = tile.nr;
+    const int64_t mr = tile.mr, nr = tile.nr, kg = tile.kgroup;
+    const int64_t nkp = (nk2 + kg - 1) / kg * kg;  // packed pairs: zero pairs pad the last group of the A operand
     const int64_t n_ip = (m + mr - 1) / mr, n_jp = ld / nr;
     // every entry of A and B is written below (padding included)
-    Array<uint32_t> A = Array<uint32_t>::uninitialised((size_t)n_ip * nk2 * mr),
-                    B = Array<uint32_t>::uninitialised((size_t)n_jp * nk2 * nr);
+    Array<uint32_t> A = Array<uint32_t>::uninitialised((size_t)n_ip * nkp * mr),
+                    B = Array<uint32_t>::uninitialised((size_t)n_jp * nkp * nr);
     Array<float> P = Array<float>::zeroed_parallel((size_t)n_ip * mr * ld, nthreads);
-    constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows
+    // A's pair r2 of row panel ip, and the step between its columns
+    auto a_pair = [&](int64_t ip, int64_t r2) {
+        return A.data() + (size_t)ip * nkp * mr + (size_t)(r2 / kg) * kg * mr + (size_t)(r2 % kg);
+    };
+    constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows (and one group of 16 pairs)
+    static_assert(kChunk % 32 == 0);
     DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
     parallel_region(nthreads, [&](int) {
         std::vector<float> dense((size_t)kChunk * ld, 0.0f);
@@ -465,15 +480,21 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
                 else std::fill(odd.begin(), odd.end(), uint16_t(0));
                 const int64_t r2 = r / 2;
                 for (int64_t ip = 0; ip < n_ip; ++ip)
-                    pack_pair(even.data(), odd.data(), ip * mr, std::min(mr, ld - ip * mr), mr,
-                              A.data() + ((size_t)ip * nk2 + r2) * mr);
+                    pack_pair(even.data(), odd.data(), ip * mr, std::min(mr, ld - ip * mr), mr, a_pair(ip, r2), kg);
                 for (int64_t jp = 0; jp < n_jp; ++jp)
-                    pack_pair(even.data(), odd.data(), jp * nr, nr, nr, B.data() + ((size_t)jp * nk2 + r2) * nr);
+                    pack_pair(even.data(), odd.data(), jp * nr, nr, nr, B.data() + ((size_t)jp * nkp + r2) * nr);
             }
+            if (r1 == nk)  // the zero pairs after the last (one chunk holds them: nkp - nk2 < 16)
+                for (int64_t r2 = nk2; r2 < nkp; ++r2) {
+                    for (int64_t ip = 0; ip < n_ip; ++ip)
+                        for (int64_t t = 0; t < mr; ++t) a_pair(ip, r2)[t * kg] = 0;
+                    for (int64_t jp = 0; jp < n_jp; ++jp)
+                        std::fill_n(B.data() + ((size_t)jp * nkp + r2) * nr, nr, uint32_t(0));
+                }
             std::fill(dense.begin(), dense.end(), 0.0f);
         }
     });
-    blocked_product(A.data(), B.data(), nk2, m, mr, nr, ld, tile.fn, P.data(), nthreads, ctrl_c);
+    blocked_product(A.data(), B.data(), nkp, m, mr, nr, ld, tile.fn, P.data(), nthreads, ctrl_c);
     add_outside_rows(V, vals, core, P.data(), ld, nthreads, ctrl_c);
     return P;
 }
@@ -909,6 +930,11 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
 }
 
 bool bf16_cores() { return pick_bf16_tile().fn != nullptr; }
+
+std::string bf16_kernel() {
+    const tiles::TileBf16 t = pick_bf16_tile();
+    return !t.fn ? "" : t.kgroup == 16 ? "amx" : "avx512_bf16";
+}
 
 std::vector<double> second_order(const Csr &W, int nthreads, int64_t *core_size, Precision precision) {
     return masked_square(W, W.w, nthreads, core_size, precision);
