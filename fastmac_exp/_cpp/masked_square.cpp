@@ -35,6 +35,10 @@
 #include <string>
 #include <utility>
 
+#if defined(__GNUC__) && defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
 #include "dense_tiles.hpp"
 #include "interrupt.hpp"
 #include "mac_core.hpp"
@@ -723,16 +727,64 @@ std::vector<double> forward_products(const Csr &V, const std::vector<double> &va
     return own;
 }
 
+#if defined(__GNUC__) && defined(__x86_64__)
+// The 16 x 16 block of floats at src (rows ld apart) transposed into dst: four rounds of shuffles in
+// registers. The scalar copy read a column of 16 rows whose stride is often a multiple of 4 KB (ld = 1,024
+// for a 1,000-node core), all in one L1 set: ~8 % of MAC on FastMAC@20's KITTI keeps.
+__attribute__((target("avx512f"))) inline __m512 unpack_lo64(__m512 a, __m512 b) {
+    return _mm512_castpd_ps(_mm512_unpacklo_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
+}
+__attribute__((target("avx512f"))) inline __m512 unpack_hi64(__m512 a, __m512 b) {
+    return _mm512_castpd_ps(_mm512_unpackhi_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
+}
+
+__attribute__((target("avx512f"))) void transpose16_avx512(const float *src, float *dst, int64_t ld) {
+    __m512 r[16], t[16];
+    for (int k = 0; k < 16; ++k) r[k] = _mm512_loadu_ps(src + k * ld);
+    for (int k = 0; k < 8; ++k) {
+        t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+        t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+    }
+    for (int k = 0; k < 4; ++k) {
+        r[4 * k] = unpack_lo64(t[4 * k], t[4 * k + 2]);
+        r[4 * k + 1] = unpack_hi64(t[4 * k], t[4 * k + 2]);
+        r[4 * k + 2] = unpack_lo64(t[4 * k + 1], t[4 * k + 3]);
+        r[4 * k + 3] = unpack_hi64(t[4 * k + 1], t[4 * k + 3]);
+    }
+    for (int h = 0; h < 2; ++h)
+        for (int q = 0; q < 4; ++q) {
+            t[8 * h + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0x88);
+            t[8 * h + 4 + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0xdd);
+        }
+    for (int q = 0; q < 8; ++q) {
+        _mm512_storeu_ps(dst + q * ld, _mm512_shuffle_f32x4(t[q], t[8 + q], 0x88));
+        _mm512_storeu_ps(dst + (8 + q) * ld, _mm512_shuffle_f32x4(t[q], t[8 + q], 0xdd));
+    }
+}
+#endif
+
 // P's entries below the diagonal from those above (P_ba = P_ab), in 16 x 16 blocks (cache-local both
-// ways): then every entry of S reads its own row of P and no mirror is needed.
+// ways): then every entry of S reads its own row of P and no mirror is needed. Whole off-diagonal float
+// blocks are transposed in registers where the CPU has AVX-512 (a copy: the same values).
 template <class T>
 void symmetrize(T *P, int64_t m, int64_t ld, int nthreads) {
     constexpr int64_t kB = 16;
     const int64_t nb = (m + kB - 1) / kB;
+    bool wide = false;
+#if defined(__GNUC__) && defined(__x86_64__)
+    if constexpr (sizeof(T) == sizeof(float)) wide = __builtin_cpu_supports("avx512f");
+#endif
     parallel_for(0, nb, nthreads, 1, [&](int64_t bi, int) {
         const int64_t a0 = bi * kB, a1 = std::min(m, a0 + kB);
         for (int64_t bj = 0; bj <= bi; ++bj) {
             const int64_t b0 = bj * kB, b1 = std::min(m, b0 + kB);
+#if defined(__GNUC__) && defined(__x86_64__)
+            if constexpr (sizeof(T) == sizeof(float))
+                if (wide && bj < bi && a1 - a0 == kB) {  // rows b0.. of the upper block into rows a0.. below
+                    transpose16_avx512(P + b0 * ld + a0, P + a0 * ld + b0, ld);
+                    continue;
+                }
+#endif
             for (int64_t a = a0; a < a1; ++a)
                 for (int64_t b = b0; b < std::min(b1, a); ++b) P[a * ld + b] = P[b * ld + a];
         }
