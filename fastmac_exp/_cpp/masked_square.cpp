@@ -872,6 +872,9 @@ std::vector<double> masked_square(const Csr &V, const std::vector<double> &vals,
     if (core.m > 0) {
         if (tile16.fn) {
             ld = (core.m + tile16.nr - 1) / tile16.nr * tile16.nr;
+            // rows of P a multiple of 4 KB apart put a column of 16 rows in one L1 set (the tiles' sums and
+            // symmetrize read and write such columns): one more panel of zeros then
+            if (ld * (int64_t)sizeof(float) % 4096 == 0) ld += tile16.nr;
             Pf = core_products_bf16(V, vals, core, tile16, ld, nthreads, ctrl_c);
         } else if (single) {
             const tiles::Tile<float> tile = pick_tile<float>();
