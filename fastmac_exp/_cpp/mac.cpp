@@ -77,10 +77,11 @@ double otsu(const std::vector<double> &cc) {
 // to 2^12), ~5x faster than a scalar version with a guess from the double's exponent and ~20x faster
 // than std::cbrt: a guess from the float's bits divided by 3 (Kahan's constant), then two of Halley's
 // steps, each of which cubes the relative error; branch-free, so the loop vectorises. Right for x >=
-// 2^-100 (a normal float); cube_roots_of fixes the others. Used from 2^17 entries (the 1,000 FastMAC@20
-// keeps of a dense KITTI pair: std::cbrt was ~15 % of MAC); smaller graphs, among them every C++/Python
-// parity test (<= 300 nodes: < 90,000 entries), keep std::cbrt.
-constexpr int64_t kFastCbrtEdges = int64_t(1) << 17;
+// 2^-100 (a normal float); cube_roots_of fixes the others. Used on graphs with more entries than 300 nodes
+// can have (the 1,000 FastMAC@20 keeps of a dense KITTI pair: std::cbrt was ~15 % of MAC; the ~500 that
+// register(samples="auto") keeps there: 6 % of a call); smaller graphs, among them every C++/Python parity
+// test (<= 300 nodes), keep std::cbrt.
+constexpr int64_t kFastCbrtEdges = 300 * 299 + 1;
 
 #if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
 __attribute__((target_clones("avx512f", "avx2", "default")))
