@@ -60,23 +60,34 @@ double min_other_d2(double x, double y, double z, const double *__restrict qx, c
 }
 
 #if defined(__GNUC__) && defined(__x86_64__)
-// min_other_d2 in one pass of AVX-512: the same squared distances (the same operations in the same order,
-// no FMA: -ffp-contract=off) and their exact minimum, the query's own position masked to +inf.
-__attribute__((target("avx512f"))) double min_other_d2_avx512(double x, double y, double z, const double *qx,
-                                                               const double *qy, const double *qz, int64_t s0,
-                                                               int64_t s1, int64_t self, double best_in) {
-    const __m512d px = _mm512_set1_pd(x), py = _mm512_set1_pd(y), pz = _mm512_set1_pd(z);
-    __m512d best = _mm512_set1_pd(best_in);
-    for (int64_t t = s0; t < s1; t += 8) {
-        __mmask8 lanes = s1 - t >= 8 ? __mmask8(0xff) : __mmask8((1u << (s1 - t)) - 1u);
-        if (self >= t && self < t + 8) lanes &= __mmask8(~(1u << (self - t)));
-        const __m512d ex = _mm512_sub_pd(px, _mm512_maskz_loadu_pd(lanes, qx + t));
-        const __m512d ey = _mm512_sub_pd(py, _mm512_maskz_loadu_pd(lanes, qy + t));
-        const __m512d ez = _mm512_sub_pd(pz, _mm512_maskz_loadu_pd(lanes, qz + t));
-        const __m512d d2 = _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ex, ex), _mm512_mul_pd(ey, ey)), _mm512_mul_pd(ez, ez));
-        best = _mm512_mask_min_pd(best, lanes, best, d2);
+// The smallest squared distance from each point of a cell (sorted positions [q0, q1)) to the points of the
+// runs [r0[k], r1[k]) (the cell's 9 columns of 3 cells) other than itself, eight points of the cell a vector
+// and every candidate broadcast: the same squared distances as min_other_d2, their minimum over all 27 cells
+// (the per-point search skips the columns that cannot be nearer, so its minimum is the same). One pass over
+// the candidates serves eight queries: ~5x the distances of the per-point search, at a fraction of the
+// cost each (no per-column setup, masks or reductions). Both clouds of the full-resolution 3DMatch pair 4->0
+// (313k + 258k points, Intel Xeon VM): 52.8 -> 49 ms on two threads, 83.9 -> 78.1 ms on one.
+__attribute__((target("avx512f"))) void cell_min_d2_avx512(const double *sx, const double *sy, const double *sz,
+                                                           int64_t q0, int64_t q1, const int64_t *r0,
+                                                           const int64_t *r1, double *best_out) {
+    for (int64_t g = q0; g < q1; g += 8) {
+        const __mmask8 lanes = q1 - g >= 8 ? __mmask8(0xff) : __mmask8((1u << (q1 - g)) - 1u);
+        const __m512d px = _mm512_maskz_loadu_pd(lanes, sx + g), py = _mm512_maskz_loadu_pd(lanes, sy + g),
+                      pz = _mm512_maskz_loadu_pd(lanes, sz + g);
+        const __m512i pos = _mm512_add_epi64(_mm512_set1_epi64(g), _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7));
+        __m512d best = _mm512_set1_pd(std::numeric_limits<double>::infinity());
+        for (int k = 0; k < 9; ++k)
+            for (int64_t t = r0[k]; t < r1[k]; ++t) {
+                const __m512d ex = _mm512_sub_pd(px, _mm512_set1_pd(sx[t]));
+                const __m512d ey = _mm512_sub_pd(py, _mm512_set1_pd(sy[t]));
+                const __m512d ez = _mm512_sub_pd(pz, _mm512_set1_pd(sz[t]));
+                const __m512d d2 =
+                    _mm512_add_pd(_mm512_add_pd(_mm512_mul_pd(ex, ex), _mm512_mul_pd(ey, ey)), _mm512_mul_pd(ez, ez));
+                const __mmask8 other = _mm512_cmpneq_epi64_mask(pos, _mm512_set1_epi64(t));
+                best = _mm512_mask_min_pd(best, other, best, d2);
+            }
+        _mm512_mask_storeu_pd(best_out + (g - q0), lanes, best);
     }
-    return _mm512_reduce_min_pd(best);
 }
 
 // FASTMAC_RESOLUTION_MIN=generic: the portable loops (read each call, for tests and benchmarks)
@@ -86,10 +97,8 @@ bool min_avx512() {
 }
 #else
 bool min_avx512() { return false; }
-double min_other_d2_avx512(double, double, double, const double *, const double *, const double *, int64_t,
-                           int64_t, int64_t, double) {
-    return 0.0;
-}
+void cell_min_d2_avx512(const double *, const double *, const double *, int64_t, int64_t, const int64_t *,
+                        const int64_t *, double *) {}
 #endif
 
 }  // namespace
@@ -160,7 +169,7 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
     for (int d = 0; d < 3; ++d) big = std::max({big, std::fabs(lo[d]), std::fabs(hi[d])});
     const double side_margin = g.h * 1e-6 + 64.0 * std::numeric_limits<double>::epsilon() * big;
     parallel_region(nthreads, [&](int) {
-        std::vector<double> dd;
+        std::vector<double> dd, cell_best;
         int64_t c0, c1;
         while (range.next(c0, c1)) {
             for (int64_t c = c0; c < c1; ++c) {
@@ -175,28 +184,36 @@ std::vector<double> nearest_other_distances(const double *p, int64_t n, int nthr
                         run_range(g, cc[0] + dx, cc[1] + dy, cc[2] - 1, cc[2] + 1, r0[k], r1[k]);
                         longest = std::max(longest, r1[k] - r0[k]);
                     }
-                if (!use512) dd.resize(size_t(longest));
+                if (use512) {
+                    cell_best.resize(size_t(last - first));
+                    cell_min_d2_avx512(g.sx.data(), g.sy.data(), g.sz.data(), first, last, r0, r1, cell_best.data());
+                } else {
+                    dd.resize(size_t(longest));
+                }
                 const double x_lo = g.lo[0] + double(cc[0] - kReach) * g.h, x_hi = x_lo + g.h;
                 const double y_lo = g.lo[1] + double(cc[1] - kReach) * g.h, y_hi = y_lo + g.h;
                 for (int64_t s = first; s < last; ++s) {
                     const double x = g.sx[s], y = g.sy[s], z = g.sz[s];
-                    auto fold = [&](int64_t k, double b) {
-                        return use512 ? min_other_d2_avx512(x, y, z, g.sx.data(), g.sy.data(), g.sz.data(), r0[k],
-                                                            r1[k], s, b)
-                                      : min_other_d2(x, y, z, g.sx.data(), g.sy.data(), g.sz.data(), r0[k], r1[k], s,
-                                                     b, dd.data());
-                    };
-                    double best = fold(4, std::numeric_limits<double>::infinity());
-                    const double gx[3] = {std::max(0.0, x - x_lo - side_margin), 0.0,
-                                          std::max(0.0, x_hi - x - side_margin)};
-                    const double gy[3] = {std::max(0.0, y - y_lo - side_margin), 0.0,
-                                          std::max(0.0, y_hi - y - side_margin)};
-                    // the four sides, then the four corners
-                    static constexpr int kOrder[8] = {1, 3, 5, 7, 0, 2, 6, 8};
-                    for (const int k : kOrder) {
-                        if (r1[k] == r0[k]) continue;
-                        const double ax = gx[k / 3], ay = gy[k % 3];
-                        if (ax * ax + ay * ay < best) best = fold(k, best);
+                    double best;
+                    if (use512) {
+                        best = cell_best[size_t(s - first)];
+                    } else {
+                        auto fold = [&](int64_t k, double b) {
+                            return min_other_d2(x, y, z, g.sx.data(), g.sy.data(), g.sz.data(), r0[k], r1[k], s, b,
+                                                dd.data());
+                        };
+                        best = fold(4, std::numeric_limits<double>::infinity());
+                        const double gx[3] = {std::max(0.0, x - x_lo - side_margin), 0.0,
+                                              std::max(0.0, x_hi - x - side_margin)};
+                        const double gy[3] = {std::max(0.0, y - y_lo - side_margin), 0.0,
+                                              std::max(0.0, y_hi - y - side_margin)};
+                        // the four sides, then the four corners
+                        static constexpr int kOrder[8] = {1, 3, 5, 7, 0, 2, 6, 8};
+                        for (const int k : kOrder) {
+                            if (r1[k] == r0[k]) continue;
+                            const double ax = gx[k / 3], ay = gy[k % 3];
+                            if (ax * ax + ay * ay < best) best = fold(k, best);
+                        }
                     }
                     // rings 2, 3, ... while a point there could be closer (ring r is >= (r - 1) h away, less a
                     // hair for a point that rounding put in the next cell)
