@@ -36,6 +36,9 @@ struct TileConfig {
 void tile_amx(const uint32_t *a, const uint32_t *b, int64_t kc2, float *c, int64_t ldc) {
     TileConfig cfg;
     for (int t = 0; t < 8; ++t) cfg.colsb[t] = 64, cfg.rows[t] = 16;
+    // GCC 12 may not see the configuration's bytes as read by LDTILECFG and drop their stores (seen in a
+    // test program: a #GP on the half-written configuration); the barrier keeps them
+    __asm__ volatile("" : : "r"(&cfg) : "memory");
     _tile_loadconfig(&cfg);
     // tiles 0-3: the 2 x 2 blocks of 16 x 16 sums; 4, 5: A (columns 0-15, 16-31); 6, 7: B (the same)
     _tile_zero(0);
