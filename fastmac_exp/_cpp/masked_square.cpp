@@ -23,8 +23,9 @@
 //
 // The sums are the same as the gather kernel's up to the order of the additions (and FMA rounding): a
 // relative difference of ~1e-15 (float32 cores and the listing: ~1e-7; see Precision in mac_core.hpp). FASTMAC_DENSE_CORE=off forces the
-// all-sparse path, FASTMAC_TRIANGLES=on | off the listing, FASTMAC_GEMM=avx512 |
-// avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has).
+// all-sparse path, FASTMAC_TRIANGLES=on | off the listing, FASTMAC_GEMM=amx | avx512 |
+// avx2 | generic picks the kernel (tests; unknown or unsupported names fall back to what the CPU has; avx512
+// keeps MAC's bfloat16 cores off AMX).
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
