@@ -124,6 +124,43 @@ tiles::Tile<T> pick_tile() {
     else return k.f;
 }
 
+#if defined(__GNUC__) && defined(__x86_64__)
+// The 16 x 16 block of 32-bit values at src (rows lds apart) transposed into dst (rows ldd apart): four rounds
+// of shuffles in registers, which move bits and never round. symmetrize's scalar copy read a column of 16
+// rows whose stride is often a multiple of 4 KB (ld = 1,024 for a 1,000-node core), all in one L1 set: ~8 %
+// of MAC on FastMAC@20's KITTI keeps; the AMX packing's A operand is B's transposed.
+__attribute__((target("avx512f"))) inline __m512 unpack_lo64(__m512 a, __m512 b) {
+    return _mm512_castpd_ps(_mm512_unpacklo_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
+}
+__attribute__((target("avx512f"))) inline __m512 unpack_hi64(__m512 a, __m512 b) {
+    return _mm512_castpd_ps(_mm512_unpackhi_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
+}
+
+__attribute__((target("avx512f"))) void transpose16_avx512(const float *src, int64_t lds, float *dst, int64_t ldd) {
+    __m512 r[16], t[16];
+    for (int k = 0; k < 16; ++k) r[k] = _mm512_loadu_ps(src + k * lds);
+    for (int k = 0; k < 8; ++k) {
+        t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+        t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+    }
+    for (int k = 0; k < 4; ++k) {
+        r[4 * k] = unpack_lo64(t[4 * k], t[4 * k + 2]);
+        r[4 * k + 1] = unpack_hi64(t[4 * k], t[4 * k + 2]);
+        r[4 * k + 2] = unpack_lo64(t[4 * k + 1], t[4 * k + 3]);
+        r[4 * k + 3] = unpack_hi64(t[4 * k + 1], t[4 * k + 3]);
+    }
+    for (int h = 0; h < 2; ++h)
+        for (int q = 0; q < 4; ++q) {
+            t[8 * h + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0x88);
+            t[8 * h + 4 + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0xdd);
+        }
+    for (int q = 0; q < 8; ++q) {
+        _mm512_storeu_ps(dst + q * ldd, _mm512_shuffle_f32x4(t[q], t[8 + q], 0x88));
+        _mm512_storeu_ps(dst + (8 + q) * ldd, _mm512_shuffle_f32x4(t[q], t[8 + q], 0xdd));
+    }
+}
+#endif
+
 // The bfloat16 tile: AMX where the build, the CPU and Linux allow it, else AVX512_BF16 where the build and
 // the CPU have it (fn nullptr otherwise, and with FASTMAC_GEMM set to a kernel other than amx or avx512;
 // FASTMAC_GEMM=avx512 takes the AVX512_BF16 tile on a CPU with AMX).
@@ -469,7 +506,12 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
         return A.data() + (size_t)ip * nkp * mr + (size_t)(r2 / kg) * kg * mr + (size_t)(r2 % kg);
     };
     constexpr int64_t kChunk = 32;  // even: a chunk holds whole pairs of rows (and one group of 16 pairs)
-    static_assert(kChunk % 32 == 0);
+    static_assert(kChunk == 32);
+    // AMX's A (groups of 16 pairs) from B's panels, transposed, where the panels are the same columns
+    bool a_from_b = false;
+#if defined(__GNUC__) && defined(__x86_64__)
+    a_from_b = kg == 16 && mr == 32 && nr == 32 && __builtin_cpu_supports("avx512f");
+#endif
     DynamicRange chunks(0, (nk + kChunk - 1) / kChunk, 1);
     parallel_region(nthreads, [&](int) {
         std::vector<float> dense((size_t)kChunk * ld, 0.0f);
@@ -484,18 +526,30 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
                 if (r + 1 < r1) round_row_bf16(dense.data() + (r + 1 - r0) * ld, ld, (uint64_t)(r + 1) * ld, odd.data());
                 else std::fill(odd.begin(), odd.end(), uint16_t(0));
                 const int64_t r2 = r / 2;
-                for (int64_t ip = 0; ip < n_ip; ++ip)
-                    pack_pair(even.data(), odd.data(), ip * mr, std::min(mr, ld - ip * mr), mr, a_pair(ip, r2), kg);
+                if (!a_from_b)
+                    for (int64_t ip = 0; ip < n_ip; ++ip)
+                        pack_pair(even.data(), odd.data(), ip * mr, std::min(mr, ld - ip * mr), mr, a_pair(ip, r2), kg);
                 for (int64_t jp = 0; jp < n_jp; ++jp)
                     pack_pair(even.data(), odd.data(), jp * nr, nr, nr, B.data() + ((size_t)jp * nkp + r2) * nr);
             }
             if (r1 == nk)  // the zero pairs after the last (one chunk holds them: nkp - nk2 < 16)
                 for (int64_t r2 = nk2; r2 < nkp; ++r2) {
-                    for (int64_t ip = 0; ip < n_ip; ++ip)
-                        for (int64_t t = 0; t < mr; ++t) a_pair(ip, r2)[t * kg] = 0;
+                    if (!a_from_b)
+                        for (int64_t ip = 0; ip < n_ip; ++ip)
+                            for (int64_t t = 0; t < mr; ++t) a_pair(ip, r2)[t * kg] = 0;
                     for (int64_t jp = 0; jp < n_jp; ++jp)
                         std::fill_n(B.data() + ((size_t)jp * nkp + r2) * nr, nr, uint32_t(0));
                 }
+#if defined(__GNUC__) && defined(__x86_64__)
+            if (a_from_b)  // the chunk is one group of 16 pairs: A's 32 x 16 block is B's 16 x 32 one transposed
+                for (int64_t ip = 0; ip < n_ip; ++ip) {
+                    const uint32_t *bg = B.data() + ((size_t)ip * nkp + r0 / 2) * nr;
+                    uint32_t *ag = a_pair(ip, r0 / 2);
+                    for (int64_t h = 0; h < 2; ++h)
+                        transpose16_avx512(reinterpret_cast<const float *>(bg + 16 * h), nr,
+                                           reinterpret_cast<float *>(ag + 16 * kg * h), kg);
+                }
+#endif
             std::fill(dense.begin(), dense.end(), 0.0f);
         }
     });
@@ -728,42 +782,6 @@ std::vector<double> forward_products(const Csr &V, const std::vector<double> &va
     return own;
 }
 
-#if defined(__GNUC__) && defined(__x86_64__)
-// The 16 x 16 block of floats at src (rows ld apart) transposed into dst: four rounds of shuffles in
-// registers. The scalar copy read a column of 16 rows whose stride is often a multiple of 4 KB (ld = 1,024
-// for a 1,000-node core), all in one L1 set: ~8 % of MAC on FastMAC@20's KITTI keeps.
-__attribute__((target("avx512f"))) inline __m512 unpack_lo64(__m512 a, __m512 b) {
-    return _mm512_castpd_ps(_mm512_unpacklo_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
-}
-__attribute__((target("avx512f"))) inline __m512 unpack_hi64(__m512 a, __m512 b) {
-    return _mm512_castpd_ps(_mm512_unpackhi_pd(_mm512_castps_pd(a), _mm512_castps_pd(b)));
-}
-
-__attribute__((target("avx512f"))) void transpose16_avx512(const float *src, float *dst, int64_t ld) {
-    __m512 r[16], t[16];
-    for (int k = 0; k < 16; ++k) r[k] = _mm512_loadu_ps(src + k * ld);
-    for (int k = 0; k < 8; ++k) {
-        t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
-        t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
-    }
-    for (int k = 0; k < 4; ++k) {
-        r[4 * k] = unpack_lo64(t[4 * k], t[4 * k + 2]);
-        r[4 * k + 1] = unpack_hi64(t[4 * k], t[4 * k + 2]);
-        r[4 * k + 2] = unpack_lo64(t[4 * k + 1], t[4 * k + 3]);
-        r[4 * k + 3] = unpack_hi64(t[4 * k + 1], t[4 * k + 3]);
-    }
-    for (int h = 0; h < 2; ++h)
-        for (int q = 0; q < 4; ++q) {
-            t[8 * h + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0x88);
-            t[8 * h + 4 + q] = _mm512_shuffle_f32x4(r[8 * h + q], r[8 * h + 4 + q], 0xdd);
-        }
-    for (int q = 0; q < 8; ++q) {
-        _mm512_storeu_ps(dst + q * ld, _mm512_shuffle_f32x4(t[q], t[8 + q], 0x88));
-        _mm512_storeu_ps(dst + (8 + q) * ld, _mm512_shuffle_f32x4(t[q], t[8 + q], 0xdd));
-    }
-}
-#endif
-
 // P's entries below the diagonal from those above (P_ba = P_ab), in 16 x 16 blocks (cache-local both
 // ways): then every entry of S reads its own row of P and no mirror is needed. Whole off-diagonal float
 // blocks are transposed in registers where the CPU has AVX-512 (a copy: the same values).
@@ -782,7 +800,7 @@ void symmetrize(T *P, int64_t m, int64_t ld, int nthreads) {
 #if defined(__GNUC__) && defined(__x86_64__)
             if constexpr (sizeof(T) == sizeof(float))
                 if (wide && bj < bi && a1 - a0 == kB) {  // rows b0.. of the upper block into rows a0.. below
-                    transpose16_avx512(P + b0 * ld + a0, P + a0 * ld + b0, ld);
+                    transpose16_avx512(P + b0 * ld + a0, ld, P + a0 * ld + b0, ld);
                     continue;
                 }
 #endif
