@@ -474,6 +474,8 @@ def test_voxel_keypoints_drop_non_finite_rows():
 
 @pytest.mark.parametrize("case", ["scan", "lattice", "huge_radius", "far_queries"])
 def test_count_within_equals_a_kd_tree(case):
+    """Both ways of counting a cell's queries: each run in place (the lattice: one query a cell) and one
+    gathered candidate list (huge_radius: every query in one cell); the scan mixes them."""
     rng = np.random.default_rng(12)
     lattice = np.stack(np.meshgrid(*[np.arange(6.0)] * 3), -1).reshape(-1, 3)
     pts, queries, r = {
