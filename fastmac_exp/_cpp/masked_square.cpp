@@ -501,7 +501,7 @@ Array<float> core_products_bf16(const Csr &V, const std::vector<double> &vals, c
     Array<uint32_t> A = Array<uint32_t>::uninitialised((size_t)n_ip * nkp * mr),
                     B = Array<uint32_t>::uninitialised((size_t)n_jp * nkp * nr);
     Array<float> P = Array<float>::zeroed_parallel((size_t)n_ip * mr * ld, nthreads);
-    // A's pair r2 of row panel ip, and the step between its columns
+    // A's pair r2 of row panel ip (its columns kg apart)
     auto a_pair = [&](int64_t ip, int64_t r2) {
         return A.data() + (size_t)ip * nkp * mr + (size_t)(r2 / kg) * kg * mr + (size_t)(r2 % kg);
     };
