@@ -1,15 +1,9 @@
 // The persistent worker pool behind parallel_region (see parallel.hpp).
 #include "parallel.hpp"
 
-#include <atomic>
-#include <chrono>
 #include <condition_variable>
 #include <thread>
 #include <vector>
-
-#if defined(__x86_64__) || defined(__i386__)
-#include <immintrin.h>
-#endif
 
 #include <pthread.h>
 #include <signal.h>
@@ -19,31 +13,6 @@ namespace fastmac {
 namespace detail {
 
 namespace {
-
-// How long a worker that finished a region, or the caller waiting for the workers, spins before it sleeps on
-// the condition variable: a call into the core opens many short regions back to back (a facade call on 5,000
-// correspondences: dozens), and each sleep and wake was a futex call and, in a VM, an interrupt to the
-// other core (~5 % of such a call in the kernel).
-constexpr auto kSpin = std::chrono::microseconds(50);
-
-inline void cpu_relax() {
-#if defined(__x86_64__) || defined(__i386__)
-    _mm_pause();
-#endif
-}
-
-// Spins until ready() or kSpin has passed; whether ready() held.
-template <class Ready>
-bool spin_until(Ready ready) {
-    const auto end = std::chrono::steady_clock::now() + kSpin;
-    for (;;) {
-        for (int k = 0; k < 64; ++k) {
-            if (ready()) return true;
-            cpu_relax();
-        }
-        if (std::chrono::steady_clock::now() >= end) return ready();
-    }
-}
 
 class Pool {
    public:
@@ -62,7 +31,7 @@ class Pool {
         {
             std::lock_guard<std::mutex> lock(mu_);
             const size_t want = (size_t)std::min(nthreads - 1, 255);
-            const uint64_t before = generation_.load(std::memory_order_relaxed);  // new workers look for the next region
+            const uint64_t before = generation_;  // new workers start out looking for the next region
             if (threads_.size() < want) {
                 // Created with the interrupts blocked, so that a new worker never holds them open, not even
                 // until it first runs (on a loaded machine that can be long): a signal meanwhile waits here.
@@ -78,7 +47,7 @@ class Pool {
             active_ = 0;
             open_ = true;
             err_ = nullptr;
-            generation_.fetch_add(1, std::memory_order_release);
+            ++generation_;
         }
         work_cv_.notify_all();
         std::exception_ptr mine;
@@ -91,13 +60,9 @@ class Pool {
         {
             // The caller's share is done only when the work is exhausted, so workers that have not
             // joined yet would find nothing: close the region and wait for those that did join.
-            {
-                std::lock_guard<std::mutex> lock(mu_);
-                open_ = false;
-            }
-            spin_until([this] { return active_.load(std::memory_order_acquire) == 0; });
             std::unique_lock<std::mutex> lock(mu_);
-            done_cv_.wait(lock, [this] { return active_.load(std::memory_order_relaxed) == 0; });
+            open_ = false;
+            done_cv_.wait(lock, [this] { return active_ == 0; });
             theirs = err_;
             err_ = nullptr;
         }
@@ -123,13 +88,8 @@ class Pool {
         pthread_sigmask(SIG_BLOCK, &interrupt_signals(), nullptr);  // (inherited blocked already: run())
         std::unique_lock<std::mutex> lock(mu_);
         for (;;) {
-            if (generation_.load(std::memory_order_relaxed) == seen) {  // the next region may come at once
-                lock.unlock();
-                spin_until([&] { return generation_.load(std::memory_order_acquire) != seen; });
-                lock.lock();
-            }
-            work_cv_.wait(lock, [&] { return generation_.load(std::memory_order_relaxed) != seen; });
-            seen = generation_.load(std::memory_order_relaxed);
+            work_cv_.wait(lock, [&] { return generation_ != seen; });
+            seen = generation_;
             if (!open_ || next_tid_ > slots_) continue;
             const int tid = next_tid_++;
             ++active_;
@@ -153,11 +113,9 @@ class Pool {
     std::mutex mu_;
     std::condition_variable work_cv_, done_cv_;
     std::vector<std::thread> threads_;
-    // written under mu_; atomic so that a spinning worker or caller may read them without it
-    std::atomic<uint64_t> generation_{0};
-    std::atomic<int> active_{0};
+    uint64_t generation_ = 0;
     bool open_ = false;
-    int slots_ = 0, next_tid_ = 1;
+    int slots_ = 0, next_tid_ = 1, active_ = 0;
     void (*fn_)(void *, int) = nullptr;
     void *ctx_ = nullptr;
     std::exception_ptr err_;
