@@ -72,8 +72,9 @@ void tile_amx(const uint32_t *a, const uint32_t *b, int64_t kc2, float *c, int64
 bool amx_granted() {
     unsigned eax, ebx, ecx, edx;
     if (!__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx)) return false;
-    const bool tile = (edx >> 24) & 1, bf16 = (edx >> 22) & 1, avx512f = (ebx >> 16) & 1;
-    if (!(tile && bf16 && avx512f)) return false;
+    const bool tile = (edx >> 24) & 1, bf16 = (edx >> 22) & 1;
+    // AVX-512 as the rest of the core checks it (the OS's ZMM state included; the cpuid bit alone is not)
+    if (!(tile && bf16 && __builtin_cpu_supports("avx512f"))) return false;
     constexpr long kReqXcompPerm = 0x1023, kXtiledata = 18;  // <asm/prctl.h>; not in older headers
     return syscall(SYS_arch_prctl, kReqXcompPerm, kXtiledata) == 0;
 }
